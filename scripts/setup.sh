@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Idempotent set-up for a Debian 12 machine: virtual environment, Python packages, and — only when SAPIEN finds
+# no Vulkan device it can render with — Mesa's software Vulkan driver from bookworm-backports (PLATFORM-NOTES).
+# Prints every step it takes; a second run only checks and returns quickly.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${VENV:-.venv}
+PY=${PYTHON:-python3}
+STAMP="$VENV/.ddvs-installed"
+say() { printf '[setup] %s\n' "$*"; }
+
+if [ ! -x "$VENV/bin/python" ]; then
+    say "creating virtual environment $VENV with $($PY --version)"
+    "$PY" -m venv "$VENV"
+fi
+
+# Reinstall only when the dependency declaration changed since the last install.
+if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
+    say "installing ddvs and its dependencies (pyproject.toml changed or first run)"
+    "$VENV/bin/pip" install --quiet --disable-pip-version-check -e '.[dev]'
+    # sapien pulls in opencv-python (GUI build); both provide cv2. We want the headless build to own cv2.
+    if "$VENV/bin/pip" show --quiet opencv-python >/dev/null 2>&1; then
+        say "replacing opencv-python (pulled in by sapien) with opencv-python-headless"
+        "$VENV/bin/pip" uninstall --quiet -y opencv-python
+        hv=$("$VENV/bin/python" -c "import importlib.metadata as m; print(m.version('opencv-python-headless'))")
+        "$VENV/bin/pip" install --quiet --disable-pip-version-check --force-reinstall --no-deps \
+            "opencv-python-headless==$hv"
+    fi
+    touch "$STAMP"
+else
+    say "python packages up to date ($STAMP newer than pyproject.toml)"
+fi
+"$VENV/bin/python" -c "import cv2, taichi, zenoh, pinocchio, sapien" 2>/dev/null \
+    || { say "ERROR: an installed package fails to import"; exit 1; }
+
+# SAPIEN rendering: probe in a subprocess (cached once it succeeded).
+RSTAMP="$VENV/.ddvs-render-ok"
+if [ -f "$RSTAMP" ]; then
+    say "SAPIEN rendering already verified"
+elif "$VENV/bin/python" -m sim.render_probe >/dev/null 2>&1; then
+    say "SAPIEN finds a Vulkan rendering device"; touch "$RSTAMP"
+else
+    say "SAPIEN finds no Vulkan rendering device: installing Mesa (lavapipe) from bookworm-backports"
+    SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    if ! grep -rqs "bookworm-backports" /etc/apt/sources.list /etc/apt/sources.list.d/; then
+        say "adding the bookworm-backports suite to the Debian apt sources"
+        echo "deb [signed-by=/usr/share/keyrings/debian-archive-keyring.gpg] http://deb.debian.org/debian bookworm-backports main" \
+            | $SUDO tee /etc/apt/sources.list.d/ddvs-backports.list >/dev/null
+    fi
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq -t bookworm-backports \
+        mesa-vulkan-drivers libvulkan1 >/dev/null
+    if "$VENV/bin/python" -m sim.render_probe; then
+        say "SAPIEN renders now"; touch "$RSTAMP"
+    else
+        say "ERROR: SAPIEN still cannot render after installing Mesa from bookworm-backports"; exit 1
+    fi
+fi
+say "done"
