@@ -1,0 +1,36 @@
+"""Chooses the Taichi backend once per process.
+
+`init()` is idempotent: the first call picks the architecture (`cpu` by default, or `cuda` / `vulkan` when asked,
+or the `DDVS_TAICHI_ARCH` environment variable); later calls return the architecture already chosen and refuse a
+conflicting request, because Taichi cannot switch backend without invalidating every allocated field.
+"""
+
+from __future__ import annotations
+
+import os
+
+import taichi as ti
+
+_ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "gpu": ti.gpu}
+_chosen: str | None = None
+
+
+def init(arch: str | None = None) -> str:
+    """Initialise Taichi on `arch` ('cpu', 'cuda', 'vulkan' or 'gpu') once; return the architecture in use."""
+    global _chosen
+    requested = arch or os.environ.get("DDVS_TAICHI_ARCH", "cpu")
+    if requested not in _ARCHS:
+        raise ValueError(f"unknown Taichi backend {requested!r}; expected one of {sorted(_ARCHS)}")
+    if _chosen is not None:
+        if arch is not None and arch != _chosen:
+            raise RuntimeError(f"Taichi already initialised on {_chosen!r}; cannot switch to {arch!r} in this process")
+        return _chosen
+    ti.init(
+        arch=_ARCHS[requested],
+        default_fp=ti.f32,
+        offline_cache=True,
+        log_level=ti.WARN,
+        debug=False,
+    )
+    _chosen = requested
+    return _chosen
