@@ -1,0 +1,102 @@
+"""The servo state machine (pure logic, no I/O).
+
+States: IDLE (no reference) → READY (reference set, not servoing) → SERVOING → CONVERGED (zero twist; resumes
+SERVOING when the error grows past `resume_threshold`, a hysteresis above the stop threshold) and LOST (registration
+failed or quality below threshold: zero twist, keeps trying to re-acquire) and STOPPED (an operator stopped it).
+Only SERVOING publishes a non-zero twist.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+
+class ServoState(str, Enum):
+    IDLE = "IDLE"
+    READY = "READY"
+    SERVOING = "SERVOING"
+    CONVERGED = "CONVERGED"
+    LOST = "LOST"
+    STOPPED = "STOPPED"
+
+
+class TransitionError(ValueError):
+    """A command that is not allowed in the current state (the state is left unchanged)."""
+
+
+@dataclass
+class FrameOutcome:
+    """What one registered frame says: registration quality and the control-error norm."""
+
+    tracked: bool
+    error_norm: float
+
+
+@dataclass
+class StateMachine:
+    """Servo state with the transitions driven by commands and by frame outcomes.
+
+    `stop_threshold` is the error norm below which the servo is CONVERGED; `resume_threshold` (> stop) the norm
+    above which a CONVERGED servo resumes. `active` records that an operator asked for servoing (start) so that a
+    LOST or CONVERGED servo goes back to SERVOING by itself.
+    """
+
+    stop_threshold: float
+    resume_threshold: float
+    state: ServoState = ServoState.IDLE
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.stop_threshold < self.resume_threshold:
+            raise ValueError(
+                f"need 0 < stop_threshold < resume_threshold, got {self.stop_threshold} and {self.resume_threshold}"
+            )
+
+    # --- commands ---------------------------------------------------------------------------------------------
+    def reference_set(self) -> ServoState:
+        """A new reference image was accepted: READY (servoing restarts only on an explicit start)."""
+        self.state = ServoState.READY
+        return self.state
+
+    def start(self) -> ServoState:
+        if self.state == ServoState.IDLE:
+            raise TransitionError("cannot start: no reference image is set (state IDLE); set a reference first")
+        self.state = ServoState.SERVOING
+        return self.state
+
+    def stop(self) -> ServoState:
+        if self.state == ServoState.IDLE:
+            raise TransitionError("cannot stop: nothing to stop (state IDLE, no reference set)")
+        self.state = ServoState.STOPPED
+        return self.state
+
+    def reset(self) -> ServoState:
+        """Forget the reference: back to IDLE."""
+        self.state = ServoState.IDLE
+        return self.state
+
+    # --- frames -----------------------------------------------------------------------------------------------
+    @property
+    def servo_active(self) -> bool:
+        """True in the states where frames drive the servo (SERVOING, CONVERGED, LOST)."""
+        return self.state in (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
+
+    def on_frame(self, outcome: FrameOutcome) -> ServoState:
+        """Update the state from one frame's registration outcome (only while the servo is active)."""
+        if not self.servo_active:
+            return self.state
+        if not outcome.tracked:
+            self.state = ServoState.LOST
+        elif self.state == ServoState.CONVERGED:
+            if outcome.error_norm > self.resume_threshold:
+                self.state = ServoState.SERVOING
+        elif outcome.error_norm < self.stop_threshold:
+            self.state = ServoState.CONVERGED
+        else:
+            self.state = ServoState.SERVOING
+        return self.state
+
+    @property
+    def moves(self) -> bool:
+        """True when the twist computed for this frame is to be published (otherwise a zero twist is)."""
+        return self.state == ServoState.SERVOING

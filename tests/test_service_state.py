@@ -1,0 +1,65 @@
+"""State machine transitions and atomic persistence of the servo service."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from ddvs_service.service.persistence import StateStore, atomic_write_bytes
+from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine, TransitionError
+
+
+def machine() -> StateMachine:
+    return StateMachine(stop_threshold=1e-3, resume_threshold=5e-3)
+
+
+def test_full_cycle_with_hysteresis() -> None:
+    sm = machine()
+    assert sm.state == ServoState.IDLE
+    with pytest.raises(TransitionError, match="no reference"):
+        sm.start()
+    assert sm.state == ServoState.IDLE
+    sm.reference_set()
+    assert sm.state == ServoState.READY
+    assert sm.on_frame(FrameOutcome(True, 1.0)) == ServoState.READY  # not started: frames do not drive it
+    sm.start()
+    assert sm.on_frame(FrameOutcome(True, 0.5)) == ServoState.SERVOING and sm.moves
+    assert sm.on_frame(FrameOutcome(True, 5e-4)) == ServoState.CONVERGED and not sm.moves
+    assert sm.on_frame(FrameOutcome(True, 3e-3)) == ServoState.CONVERGED  # inside the hysteresis band
+    assert sm.on_frame(FrameOutcome(True, 6e-3)) == ServoState.SERVOING
+    assert sm.on_frame(FrameOutcome(False, np.nan)) == ServoState.LOST and not sm.moves
+    assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.SERVOING  # re-acquired
+    sm.stop()
+    assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.STOPPED
+    sm.reset()
+    assert sm.state == ServoState.IDLE
+    with pytest.raises(TransitionError):
+        sm.stop()
+
+
+def test_thresholds_validated() -> None:
+    with pytest.raises(ValueError, match="stop_threshold < resume_threshold"):
+        StateMachine(stop_threshold=1e-2, resume_threshold=1e-3)
+
+
+def test_store_round_trip(tmp_path) -> None:
+    store = StateStore(tmp_path / "state")
+    assert store.load_reference() is None and store.load_json("state.json") is None
+    ref = (np.arange(240 * 320) % 251).astype(np.uint8).reshape(240, 320)
+    store.save_reference(ref)
+    np.testing.assert_array_equal(store.load_reference(), ref)
+    store.save_json("state.json", {"state": "READY", "G": np.eye(3).tolist()})
+    assert store.load_json("state.json")["state"] == "READY"
+    assert not [p for p in os.listdir(store.dir) if p.endswith(".tmp")]
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path) -> None:
+    target = tmp_path / "config.json"
+    atomic_write_bytes(target, b"old")
+
+    with pytest.raises(TypeError):
+        atomic_write_bytes(target, object())  # type: ignore[arg-type]
+    assert target.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["config.json"]
