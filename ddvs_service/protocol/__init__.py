@@ -1,0 +1,1 @@
+"""The ddvs message protocol: key expressions, ROS 2 CDR codecs, JSON control plane, Zenoh session helpers."""

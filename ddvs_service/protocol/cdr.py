@@ -1,0 +1,201 @@
+"""Minimal little-endian CDR (XCDR1, as ROS 2 uses it) writer and bounds-checked reader.
+
+Layout rules (OMG CDR / XCDR1 as emitted by rosidl typesupport and `rosbags`):
+- A payload starts with the 4-byte encapsulation header `00 01 00 00` (representation CDR_LE, options 0).
+- Offsets for alignment count from the first byte *after* that header. A primitive of size n ∈ {1, 2, 4, 8} is
+  preceded by zero padding up to the next multiple of n.
+- `string`: uint32 length including the terminating NUL, the UTF-8 bytes, the NUL.
+- `sequence<T>`: uint32 element count, then the elements (each aligned as T). Fixed arrays `T[n]` have no count.
+
+The reader never allocates from a length field before checking it against both the configured maximum
+(`MessageTooLarge`) and the bytes actually left (`TruncatedMessage`).
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ddvs_service.protocol.errors import InconsistentMessage, MessageTooLarge, TruncatedMessage, UnsupportedEncoding
+
+ENCAPSULATION_CDR_LE = b"\x00\x01\x00\x00"
+HEADER_SIZE = 4
+_PAD = bytes(8)
+_U32 = struct.Struct("<I")
+_I32 = struct.Struct("<i")
+_F64 = struct.Struct("<d")
+
+
+class CdrWriter:
+    """Appends CDR fields; `finish()` joins them into one `bytes` (large blobs are copied exactly once)."""
+
+    def __init__(self) -> None:
+        self._chunks: list[bytes | memoryview] = [ENCAPSULATION_CDR_LE]
+        self._pos = 0  # offset after the encapsulation header, for alignment
+
+    def _align(self, n: int) -> None:
+        pad = -self._pos % n
+        if pad:
+            self._chunks.append(_PAD[:pad])
+            self._pos += pad
+
+    def _raw(self, data: bytes | memoryview) -> None:
+        self._chunks.append(data)
+        self._pos += len(data)
+
+    def uint8(self, value: int) -> None:
+        self._raw(bytes((value,)))
+
+    def boolean(self, value: bool) -> None:
+        self._raw(b"\x01" if value else b"\x00")
+
+    def uint32(self, value: int) -> None:
+        self._align(4)
+        self._raw(_U32.pack(value))
+
+    def int32(self, value: int) -> None:
+        self._align(4)
+        self._raw(_I32.pack(value))
+
+    def float64(self, value: float) -> None:
+        self._align(8)
+        self._raw(_F64.pack(value))
+
+    def string(self, value: str) -> None:
+        data = value.encode("utf-8")
+        self.uint32(len(data) + 1)
+        self._raw(data + b"\x00")
+
+    def float64_array(self, values: ArrayLike, length: int | None = None) -> None:
+        """Fixed array `float64[length]` (no count) or, with `length=None`, `sequence<float64>`."""
+        a = np.ascontiguousarray(values, dtype="<f8").reshape(-1)
+        if length is None:
+            self.uint32(a.size)
+        elif a.size != length:
+            raise InconsistentMessage(f"float64[{length}] array given {a.size} values; expected exactly {length}")
+        if a.size:
+            self._align(8)
+            self._raw(a.tobytes())
+
+    def string_sequence(self, values: Sequence[str]) -> None:
+        self.uint32(len(values))
+        for s in values:
+            self.string(s)
+
+    def uint8_sequence(self, data: bytes | memoryview | NDArray[np.uint8]) -> None:
+        """`sequence<uint8>`: count then the bytes, appended without an intermediate copy."""
+        view = memoryview(data).cast("B") if not isinstance(data, bytes) else data
+        self.uint32(len(view))
+        self._raw(view)
+
+    def finish(self) -> bytes:
+        return b"".join(self._chunks)
+
+
+class CdrReader:
+    """Reads CDR fields from `buf` (bytes, bytearray or memoryview) without copying it.
+
+    `max_bytes` bounds the whole payload and every length field; exceeding it raises `MessageTooLarge`.
+    """
+
+    def __init__(self, buf: bytes | bytearray | memoryview, max_bytes: int) -> None:
+        try:
+            view = memoryview(buf).cast("B")
+        except TypeError as exc:
+            raise InconsistentMessage(f"payload must be a bytes-like object, got {type(buf).__name__}") from exc
+        if len(view) > max_bytes:
+            raise MessageTooLarge(f"payload is {len(view)} bytes; the maximum is {max_bytes}")
+        if len(view) < HEADER_SIZE:
+            raise TruncatedMessage(f"payload is {len(view)} bytes; a CDR payload needs a 4-byte encapsulation header")
+        header = bytes(view[:HEADER_SIZE])
+        if header[:2] != ENCAPSULATION_CDR_LE[:2]:
+            raise UnsupportedEncoding(
+                f"CDR representation {header[:2].hex()}: only CDR_LE (encapsulation header 00 01 00 00) is supported"
+            )
+        self._view = view[HEADER_SIZE:]
+        self._pos = 0
+        self.max_bytes = max_bytes
+
+    @property
+    def remaining(self) -> int:
+        return len(self._view) - self._pos
+
+    def _align(self, n: int) -> None:
+        self._pos += -self._pos % n
+
+    def _take(self, n: int, what: str) -> memoryview:
+        if n > self.remaining:
+            raise TruncatedMessage(f"{what}: needs {n} bytes at offset {self._pos}, only {max(self.remaining, 0)} left")
+        out = self._view[self._pos : self._pos + n]
+        self._pos += n
+        return out
+
+    def _check_length(self, count: int, item_size: int, what: str) -> None:
+        """Reject a count before anything is allocated from it."""
+        nbytes = count * item_size
+        if nbytes > self.max_bytes:
+            raise MessageTooLarge(f"{what}: length {count} ({nbytes} bytes) exceeds the maximum of {self.max_bytes}")
+        if nbytes > self.remaining:
+            raise TruncatedMessage(f"{what}: length {count} needs {nbytes} bytes, only {max(self.remaining, 0)} left")
+
+    def uint8(self, what: str) -> int:
+        return self._take(1, what)[0]
+
+    def boolean(self, what: str) -> bool:
+        b = self.uint8(what)
+        if b > 1:
+            raise InconsistentMessage(f"{what}: boolean byte is {b}; expected 0 or 1")
+        return b == 1
+
+    def uint32(self, what: str) -> int:
+        self._align(4)
+        return int(_U32.unpack(self._take(4, what))[0])
+
+    def int32(self, what: str) -> int:
+        self._align(4)
+        return int(_I32.unpack(self._take(4, what))[0])
+
+    def float64(self, what: str) -> float:
+        self._align(8)
+        return float(_F64.unpack(self._take(8, what))[0])
+
+    def string(self, what: str) -> str:
+        n = self.uint32(f"{what} length")
+        if n == 0:
+            raise InconsistentMessage(f"{what}: string length 0; a CDR string counts its NUL terminator (length ≥ 1)")
+        self._check_length(n, 1, what)
+        raw = self._take(n, what)
+        if raw[n - 1] != 0:
+            raise InconsistentMessage(f"{what}: string of length {n} does not end with a NUL byte")
+        try:
+            return str(raw[: n - 1], "utf-8")
+        except UnicodeDecodeError as exc:
+            raise InconsistentMessage(f"{what}: not valid UTF-8 ({exc.reason} at byte {exc.start})") from exc
+
+    def float64_array(self, what: str, length: int | None = None) -> NDArray[np.float64]:
+        """Fixed `float64[length]` or, with `length=None`, `sequence<float64>`; returns a writable copy."""
+        n = self.uint32(f"{what} count") if length is None else length
+        if n == 0:
+            return np.zeros(0)
+        self._align(8)
+        self._check_length(n, 8, what)
+        return np.frombuffer(self._take(8 * n, what), dtype="<f8").astype(np.float64)
+
+    def string_sequence(self, what: str) -> list[str]:
+        n = self.uint32(f"{what} count")
+        self._check_length(n, 5, what)  # each element takes at least a length and a NUL
+        return [self.string(f"{what}[{i}]") for i in range(n)]
+
+    def uint8_sequence(self, what: str) -> memoryview:
+        """`sequence<uint8>` as a memoryview into the payload (no copy)."""
+        n = self.uint32(f"{what} count")
+        self._check_length(n, 1, what)
+        return self._take(n, what)
+
+    def expect_end(self, what: str) -> None:
+        """Allow at most 7 bytes of trailing alignment padding after the last field."""
+        if self.remaining > 7:
+            raise InconsistentMessage(f"{what}: {self.remaining} unexpected bytes after the last field")
