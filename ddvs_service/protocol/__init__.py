@@ -1,1 +1,102 @@
-"""The ddvs message protocol: key expressions, ROS 2 CDR codecs, JSON control plane, Zenoh session helpers."""
+"""The ddvs message protocol: key expressions, ROS 2 CDR codecs, JSON control plane, Zenoh session helpers.
+
+See `docs/protocol.md` for the key table, encodings and schemas. `session` (which imports zenoh) is not imported
+here, so the codecs stay usable without opening the network stack: `from ddvs_service.protocol.session import …`.
+"""
+
+from ddvs_service.protocol.control import (
+    COMMAND_OPS,
+    PROTOCOL_VERSION,
+    Command,
+    Counters,
+    GroundTruth,
+    Latency,
+    ReferenceImage,
+    Reply,
+    Roi,
+    StateSnapshot,
+    Status,
+    dump,
+    parse_command,
+    parse_message,
+)
+from ddvs_service.protocol.errors import (
+    InconsistentMessage,
+    InvalidMessage,
+    MessageTooLarge,
+    ProtocolError,
+    TruncatedMessage,
+    UnsupportedEncoding,
+)
+from ddvs_service.protocol.keys import TOPICS, Keys, TopicSpec
+from ddvs_service.protocol.rmw import RmwAttachment, RmwPublisherIdentity, rmw_zenoh_key
+from ddvs_service.protocol.ros import (
+    ENCODINGS,
+    IMAGE_MAX_BYTES,
+    CameraInfo,
+    Header,
+    Image,
+    JointState,
+    RegionOfInterest,
+    Time,
+    TwistStamped,
+    decode_camera_info,
+    decode_image,
+    decode_joint_state,
+    decode_twist_stamped,
+    encode_camera_info,
+    encode_image,
+    encode_joint_state,
+    encode_twist_stamped,
+    image_from_array,
+)
+from ddvs_service.protocol.upload import decode_upload, encode_upload
+
+__all__ = [
+    "COMMAND_OPS",
+    "ENCODINGS",
+    "IMAGE_MAX_BYTES",
+    "PROTOCOL_VERSION",
+    "TOPICS",
+    "CameraInfo",
+    "Command",
+    "Counters",
+    "GroundTruth",
+    "Header",
+    "Image",
+    "InconsistentMessage",
+    "InvalidMessage",
+    "JointState",
+    "Keys",
+    "Latency",
+    "MessageTooLarge",
+    "ProtocolError",
+    "ReferenceImage",
+    "RegionOfInterest",
+    "Reply",
+    "RmwAttachment",
+    "RmwPublisherIdentity",
+    "Roi",
+    "StateSnapshot",
+    "Status",
+    "Time",
+    "TopicSpec",
+    "TruncatedMessage",
+    "TwistStamped",
+    "UnsupportedEncoding",
+    "decode_camera_info",
+    "decode_image",
+    "decode_joint_state",
+    "decode_twist_stamped",
+    "decode_upload",
+    "dump",
+    "encode_camera_info",
+    "encode_image",
+    "encode_joint_state",
+    "encode_twist_stamped",
+    "encode_upload",
+    "image_from_array",
+    "parse_command",
+    "parse_message",
+    "rmw_zenoh_key",
+]
