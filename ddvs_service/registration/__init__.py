@@ -1,0 +1,1 @@
+"""Direct image registration: planar (SL(3) + illumination, `planar`, `tracker`) and global initialisation."""

@@ -1,0 +1,66 @@
+"""Settings of the planar direct registration (eq. (5)); validated on construction."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+RobustLoss = Literal["huber", "tukey", "none"]
+ROBUST_CODES: dict[str, int] = {"none": 0, "huber": 1, "tukey": 2}
+MAX_GAIN_NODES_PER_AXIS = 4
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """How `register` and `Tracker` minimise eq. (5).
+
+    - `levels`: pyramid levels at most (1 = full resolution only); fewer are used when the ROI would shrink below
+      `min_level_size` pixels on a side.
+    - `max_iterations`: Gauss-Newton iterations per level.
+    - `gain_grid`: (rows, cols) of the bilinear gain surface S of eq. (4) over the ROI; (1, 1) = one global gain.
+    - `robust`: M-estimator (Huber k = 1.345 σ, Tukey c = 4.685 σ, or plain least squares); σ = 1.4826 · median |r|,
+      never below `scale_floor` grey levels.
+    - `min_inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged.
+    - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
+    - `step_tolerance_px`: convergence when the last update moves every ROI corner by less than this many pixels of
+      the level being solved (full-resolution pixels at the finest level).
+    - `max_step_fraction`: an update moving a corner by more than this fraction of the ROI size is scaled down.
+    - `bands`: row bands of the reduction (parallel work items), 1…32.
+    """
+
+    levels: int = 3
+    max_iterations: int = 30
+    gain_grid: tuple[int, int] = (1, 1)
+    robust: RobustLoss = "huber"
+    min_inlier_ratio: float = 0.5
+    min_valid_ratio: float = 0.3
+    step_tolerance_px: float = 1e-3
+    max_step_fraction: float = 0.25
+    scale_floor: float = 0.5
+    min_level_size: int = 16
+    bands: int = 8
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.levels <= 8:
+            raise ValueError(f"levels must be in 1..8, got {self.levels}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
+        rows, cols = self.gain_grid
+        if not (1 <= rows <= MAX_GAIN_NODES_PER_AXIS and 1 <= cols <= MAX_GAIN_NODES_PER_AXIS):
+            raise ValueError(
+                f"gain_grid must be (rows, cols) with each in 1..{MAX_GAIN_NODES_PER_AXIS}, got {rows}×{cols}"
+            )
+        if self.robust not in ROBUST_CODES:
+            raise ValueError(f"robust must be one of {sorted(ROBUST_CODES)}, got {self.robust!r}")
+        for name in ("min_inlier_ratio", "min_valid_ratio", "max_step_fraction"):
+            value = getattr(self, name)
+            if not 0.0 < value <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1], got {value}")
+        if not self.step_tolerance_px > 0.0:
+            raise ValueError(f"step_tolerance_px must be > 0, got {self.step_tolerance_px}")
+        if not self.scale_floor > 0.0:
+            raise ValueError(f"scale_floor must be > 0 grey levels, got {self.scale_floor}")
+        if self.min_level_size < 8:
+            raise ValueError(f"min_level_size must be ≥ 8 pixels, got {self.min_level_size}")
+        if not 1 <= self.bands <= 32:
+            raise ValueError(f"bands must be in 1..32, got {self.bands}")

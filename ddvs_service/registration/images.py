@@ -1,0 +1,59 @@
+"""Input images of the registration engine: checks, grey conversion and pyramids.
+
+Images are `[row, col]` arrays; inside the engine they are float32 grey levels (uint8 values kept as 0…255).
+Level-l pixel coordinates relate to full-resolution ones by `p_l = D_l p_0` with
+`D_l = [[2⁻ˡ, 0, (2⁻ˡ − 1)/2], [0, 2⁻ˡ, (2⁻ˡ − 1)/2], [0, 0, 1]]` (pixel centres; see `kernels.pyramid`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+F32 = NDArray[np.float32]
+
+
+def to_grey(image: ArrayLike) -> F32:
+    """Grey float32 image from a 2-D array or an H×W×3 BGR (OpenCV order) / H×W×4 BGRA array (ITU-R BT.601)."""
+    img = np.asarray(image)
+    if img.ndim == 2:
+        return img.astype(np.float32, copy=False)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        b, g, r = (img[..., k].astype(np.float32) for k in range(3))
+        return (0.114 * b + 0.587 * g + 0.299 * r).astype(np.float32)
+    raise ValueError(f"expected a 2-D grey image or an H×W×3/4 colour image, got shape {img.shape}")
+
+
+def checked_grey(image: ArrayLike, name: str) -> F32:
+    """`image` as a contiguous float32 2-D array; refuses colour, tiny, NaN or infinite images with a clear error."""
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D grey image, got shape {img.shape} (convert colour with to_grey)")
+    if img.shape[0] < 8 or img.shape[1] < 8:
+        raise ValueError(f"{name} is {img.shape[1]}×{img.shape[0]} pixels, expected at least 8×8")
+    out = np.ascontiguousarray(img, dtype=np.float32)
+    if not np.isfinite(out).all():
+        bad = int((~np.isfinite(out)).sum())
+        raise ValueError(f"{name} contains {bad} NaN/Inf pixels; expected finite grey levels")
+    return out
+
+
+def level_matrix(level: int) -> NDArray[np.float64]:
+    """`D_l`: full-resolution pixel coordinates → level-`level` pixel coordinates (module docstring)."""
+    k = 0.5**level
+    return np.array([[k, 0.0, 0.5 * (k - 1.0)], [0.0, k, 0.5 * (k - 1.0)], [0.0, 0.0, 1.0]])
+
+
+def build_pyramid(image: F32, levels: int) -> list[F32]:
+    """`[full resolution, ½, ¼, …]`, `levels` images, each made by `kernels.pyramid.downsample2` from the previous."""
+    from kernels.backend import init
+    from kernels.pyramid import downsample2
+
+    init()
+    pyramid = [image]
+    for _ in range(1, levels):
+        src = pyramid[-1]
+        dst = np.empty((src.shape[0] // 2, src.shape[1] // 2), dtype=np.float32)
+        downsample2(src, dst)
+        pyramid.append(dst)
+    return pyramid

@@ -1,0 +1,292 @@
+"""Planar direct registration on SL(3) with an illumination model and robust weights (eqs. (4)–(5), `ρ* ≡ 0`).
+
+Minimises `½ Σ ρ(S(p*) · I(w(G, p*)) + β − I*(p*))` over the ROI with an ESM Gauss-Newton iteration
+(`kernels.planar_step` builds the robust normal equations in one Taichi launch per iteration), coarse to fine over a
+pyramid. Updates: `G ← G · N⁻¹ exp(Σ xᵢ Aᵢ) N` at each level (`Aᵢ` = `lie.SL3_GENERATORS`, `N` the level's
+normalisation `q = (p − c) / s` around the ROI centre, which keeps the 8 unknowns equally scaled; `N⁻¹ exp(·) N`
+is itself in SL(3)), `S ← S + δS`, `β ← β + δβ`. The robust scale σ = 1.4826 · median |r| is taken from the
+previous evaluation (the first one of a cold start uses plain least squares).
+
+`G` maps reference pixels to current pixels, full-image 0-based pixel centres; `roi = (x, y, w, h)` in reference
+pixels covers columns x … x + w − 1 and rows y … y + h − 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ddvs_service.lie import sl3_exp, sl3_normalize
+from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
+from ddvs_service.registration.images import F32, build_pyramid, checked_grey, level_matrix
+from ddvs_service.registration.layout import ParamLayout
+from ddvs_service.registration.result import RegistrationResult
+
+F64 = NDArray[np.float64]
+Roi = tuple[int, int, int, int]
+MAD_TO_SIGMA = 1.4826
+DEGENERATE_RCOND = 1e-9
+
+
+@dataclass(frozen=True)
+class _Level:
+    """Fixed geometry of one pyramid level: ROI bounds (inclusive), gain-grid span, normalisation, corners."""
+
+    index: int
+    bounds: tuple[int, int, int, int]
+    span: tuple[float, float, float, float]
+    norm: tuple[float, float, float]
+    n_pixels: int
+
+    @property
+    def D(self) -> F64:
+        return level_matrix(self.index)
+
+    @property
+    def N(self) -> F64:
+        cx, cy, s = self.norm
+        return np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+
+    @property
+    def corners(self) -> F64:
+        """Homogeneous ROI corners (3×4), level pixels."""
+        u0, v0, u1, v1 = self.bounds
+        return np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]])
+
+    @property
+    def size(self) -> float:
+        u0, v0, u1, v1 = self.bounds
+        return float(max(u1 - u0, v1 - v0))
+
+
+@dataclass
+class _State:
+    G: F64
+    gains: F64
+    beta: float
+    scale: float | None
+    residual_rms: float = float("nan")
+    inlier_ratio: float = 0.0
+
+
+def _project(G: F64, pts: F64) -> F64:
+    q = G @ pts
+    return q[:2] / q[2]
+
+
+def _validate_roi(roi: Roi | None, shape: tuple[int, ...]) -> Roi:
+    h, w = shape
+    if roi is None:
+        return 0, 0, w, h
+    if len(roi) != 4:
+        raise ValueError(f"roi must be (x, y, w, h), got {roi!r}")
+    x, y, rw, rh = (int(v) for v in roi)
+    if rw < 8 or rh < 8:
+        raise ValueError(f"roi {roi} is {rw}×{rh} pixels, expected at least 8×8")
+    if x < 0 or y < 0 or x + rw > w or y + rh > h:
+        raise ValueError(f"roi (x={x}, y={y}, w={rw}, h={rh}) is not inside the {w}×{h} reference image")
+    return x, y, rw, rh
+
+
+class PlanarRegistration:
+    """The reference side of eq. (5), prepared once: pyramid, masked ROI, levels, buffers. `run` registers an image."""
+
+    def __init__(
+        self,
+        reference: ArrayLike,
+        roi: Roi | None = None,
+        mask: ArrayLike | None = None,
+        config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
+    ) -> None:
+        from kernels.backend import init
+        from kernels.planar_step import PARAMS_GAINS, n_acc, n_params, work_size
+
+        init()
+        self.config = config
+        ref = checked_grey(reference, "reference").copy()
+        self.shape = ref.shape
+        self.roi = _validate_roi(roi, ref.shape)
+        if mask is not None:
+            m = np.asarray(mask)
+            if m.shape != ref.shape:
+                raise ValueError(f"mask has shape {m.shape}, expected the reference's {ref.shape}")
+            ref[~m.astype(bool)] = np.nan  # NaN marks excluded pixels for the kernels
+        self.levels = self._make_levels(build_pyramid(ref, config.levels))
+        self.reference = build_pyramid(ref, len(self.levels))
+        self.grid = config.gain_grid
+        self.layout = ParamLayout.planar(*self.grid)
+        if self.layout.size != n_params(*self.grid):
+            raise AssertionError("parameter layout and kernel column order disagree")
+        self._n = self.layout.size
+        self._nacc = n_acc(self._n)
+        self._triu = np.triu_indices(self._n)
+        self._params = np.zeros(PARAMS_GAINS + self.grid[0] * self.grid[1], dtype=np.float32)
+        self._work = np.zeros(work_size(self._n), dtype=np.float32)
+
+    def _make_levels(self, pyramid: list[F32]) -> list[_Level]:
+        """Levels 0 … L − 1 whose ROI keeps at least `min_level_size` pixels per side; refuses an all-masked ROI."""
+        x, y, w, h = self.roi
+        levels = []
+        for index, ref in enumerate(pyramid):
+            k = 2**index
+            u0, v0 = math.ceil(x / k), math.ceil(y / k)
+            u1 = min(math.floor((x + w) / k) - 1, ref.shape[1] - 1)
+            v1 = min(math.floor((y + h) / k) - 1, ref.shape[0] - 1)
+            if index > 0 and min(u1 - u0 + 1, v1 - v0 + 1) < self.config.min_level_size:
+                break
+            n_pixels = int(np.isfinite(ref[v0 : v1 + 1, u0 : u1 + 1]).sum())
+            if n_pixels == 0:
+                if index == 0:
+                    raise ValueError("the mask excludes every pixel of the ROI; expected some pixels to register")
+                break
+            D = level_matrix(index)
+            sx0, sx1 = D[0, 0] * np.array([x, x + w - 1]) + D[0, 2]
+            sy0, sy1 = D[1, 1] * np.array([y, y + h - 1]) + D[1, 2]
+            levels.append(
+                _Level(
+                    index=index,
+                    bounds=(u0, v0, u1, v1),
+                    span=(float(sx0), float(sy0), float(sx1), float(sy1)),
+                    norm=(0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * max(u1 - u0, v1 - v0)),
+                    n_pixels=n_pixels,
+                )
+            )
+        return levels
+
+    def run(
+        self,
+        current: ArrayLike,
+        G0: ArrayLike | None = None,
+        gains0: ArrayLike | float = 1.0,
+        beta0: float = 0.0,
+        scale0: float | None = None,
+    ) -> RegistrationResult:
+        """Register `current` starting from `G0` (any scale, positive determinant; identity by default), gains and
+        bias (eq. (4)) and robust scale σ (grey levels; `None`: estimated from a first least-squares evaluation)."""
+        cur = checked_grey(current, "current")
+        if cur.shape != self.shape:
+            raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
+                             f"{self.shape[1]}×{self.shape[0]}")
+        G = np.eye(3) if G0 is None else sl3_normalize(np.asarray(G0, dtype=np.float64).reshape(3, 3))
+        gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
+        state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0)
+        pyramid = build_pyramid(cur, len(self.levels))
+        iterations: list[int] = []
+        converged, reason = False, ""
+        for level in reversed(self.levels):
+            count, converged, reason, failed = self._solve_level(level, self.reference[level.index],
+                                                                 pyramid[level.index], state)
+            iterations.append(count)
+            if failed:
+                break
+        if converged and state.inlier_ratio < self.config.min_inlier_ratio:
+            converged = False
+            reason = f"inlier ratio {state.inlier_ratio:.3f} below min_inlier_ratio {self.config.min_inlier_ratio}"
+        return RegistrationResult(
+            G=state.G, S=state.gains.copy(), beta=state.beta, iterations=iterations,
+            residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio, converged=converged, reason=reason,
+            scale=float("nan") if state.scale is None else state.scale,
+        )
+
+    def _fill_params(self, level: _Level, G_l: F64, state: _State) -> None:
+        from kernels.planar_step import (
+            PARAMS_BANDS,
+            PARAMS_BETA,
+            PARAMS_G,
+            PARAMS_GAINS,
+            PARAMS_NORM,
+            PARAMS_ROBUST,
+            PARAMS_ROI,
+            PARAMS_SIGMA,
+            PARAMS_SPAN,
+        )
+
+        p = self._params
+        p[PARAMS_G : PARAMS_G + 9] = G_l.reshape(9)
+        p[PARAMS_NORM : PARAMS_NORM + 3] = level.norm
+        p[PARAMS_ROI : PARAMS_ROI + 4] = level.bounds
+        p[PARAMS_SPAN : PARAMS_SPAN + 4] = level.span
+        p[PARAMS_BETA] = state.beta
+        p[PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
+        p[PARAMS_ROBUST] = 0 if state.scale is None else ROBUST_CODES[self.config.robust]
+        p[PARAMS_BANDS] = self.config.bands
+        p[PARAMS_GAINS:] = state.gains.reshape(-1)
+
+    def _solve_level(self, level: _Level, ref: F32, cur: F32, state: _State) -> tuple[int, bool, str, bool]:
+        """Gauss-Newton at one level; updates `state`; returns (iterations, converged, reason, fatal failure)."""
+        from kernels.planar_step import planar_step
+
+        cfg = self.config
+        n, nt = self._n, self._n * (self._n + 1) // 2
+        D = level.D
+        D_inv = np.linalg.inv(D)
+        N = level.N
+        N_inv = np.linalg.inv(N)
+        corners = level.corners
+        sl_G, sl_S, sl_b = self.layout.slice("G"), self.layout.slice("S"), self.layout.slice("beta")
+        for it in range(1, cfg.max_iterations + 1):
+            G_l = D @ state.G @ D_inv
+            self._fill_params(level, G_l, state)
+            planar_step(ref, cur, self._params, self._work, self.grid[0], self.grid[1])
+            acc = self._work[: self._nacc].astype(np.float64)
+            n_valid, n_inliers, sum_r2, median = acc[nt + n :]
+            valid_ratio = n_valid / level.n_pixels
+            if valid_ratio < cfg.min_valid_ratio:
+                return it, False, (f"diverged at level {level.index}: only {valid_ratio:.0%} of the ROI maps inside "
+                                   f"the current image (min_valid_ratio {cfg.min_valid_ratio:.0%})"), True
+            state.residual_rms = math.sqrt(sum_r2 / n_valid)
+            state.inlier_ratio = min(1.0, n_inliers / level.n_pixels) if state.scale is not None else 1.0
+            state.scale = max(MAD_TO_SIGMA * median, cfg.scale_floor)
+            H = np.zeros((n, n))
+            H[self._triu] = acc[:nt]
+            H = H + np.triu(H, 1).T
+            g = acc[nt : nt + n]
+            d = np.diag(H)
+            if not np.all(d > 0):
+                return it, False, f"degenerate normal equations at level {level.index} (textureless ROI?)", True
+            Hn = H / np.sqrt(np.outer(d, d))
+            eig = np.linalg.eigvalsh(Hn)
+            if not eig[0] > DEGENERATE_RCOND * eig[-1]:
+                return it, False, (f"degenerate normal equations at level {level.index} (textureless ROI?): "
+                                   f"reciprocal condition {eig[0] / eig[-1]:.1e}"), True
+            delta = np.linalg.solve(H, -g)
+            if not np.all(np.isfinite(delta)):
+                return it, False, f"non-finite update at level {level.index}", True
+            before = _project(G_l, corners)
+            G_l_new = G_l @ N_inv @ sl3_exp(delta[sl_G]) @ N
+            step = float(np.max(np.abs(_project(G_l_new, corners) - before)))
+            limit = cfg.max_step_fraction * level.size
+            if not step <= limit:  # also catches NaN
+                delta = delta * (limit / step) if math.isfinite(step) else np.zeros_like(delta)
+                G_l_new = G_l @ N_inv @ sl3_exp(delta[sl_G]) @ N
+            state.G = sl3_normalize(D_inv @ G_l_new @ D)
+            state.gains = state.gains + delta[sl_S].reshape(self.grid)
+            state.beta = state.beta + float(delta[sl_b][0])
+            if step < cfg.step_tolerance_px:
+                return it, True, f"converged: last step {step:.1e} px < {cfg.step_tolerance_px:g} px", False
+        return cfg.max_iterations, False, (f"max_iterations ({cfg.max_iterations}) reached at level "
+                                           f"{level.index}"), False
+
+
+def register(
+    reference: ArrayLike,
+    current: ArrayLike,
+    roi: Roi | None = None,
+    mask: ArrayLike | None = None,
+    G0: ArrayLike | None = None,
+    photometric0: tuple[ArrayLike | float, float] | None = None,
+    config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
+) -> RegistrationResult:
+    """Estimate `G` (reference → current pixels) and the gains `S` and bias `β` of eq. (4) over `roi`.
+
+    `reference`, `current`: same-size grey images (uint8 or float, grey levels 0…255). `roi = (x, y, w, h)` in reference
+    pixels (whole image when None); `mask`: boolean, True where reference pixels may be used. `G0`: initial homography
+    (identity when None); `photometric0 = (S, β)`, S a scalar or an array of shape `config.gain_grid`.
+    Raises ValueError on bad input (sizes, ROI, NaN/Inf, mask); a failed iteration is reported in the result.
+    """
+    problem = PlanarRegistration(reference, roi=roi, mask=mask, config=config)
+    gains0, beta0 = (1.0, 0.0) if photometric0 is None else photometric0
+    return problem.run(current, G0=G0, gains0=gains0, beta0=beta0)

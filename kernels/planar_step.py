@@ -1,0 +1,240 @@
+"""One robust ESM Gauss-Newton step of planar direct registration (paper eqs. (4)–(5) with `ρ* ≡ 0`), fused.
+
+For every reference pixel `p*` of the region of interest (level pixels, `u` = column, `v` = row, pixel centres):
+- residual (eq. (4) vs (5)): `r = S(p*) · I(w(G, p*)) + β − I*(p*)`, `w(G, p*)` the dehomogenised `G · [u, v, 1]`;
+- Jacobian row over the parameter layout `[x_1..x_8 (sl(3)), gain nodes s_00..s_{R−1,C−1}, β]`:
+  - geometric block, ESM: `½ (S ∇Iw + ∇I*) · ∂w(N⁻¹ exp(Σ xᵢ Aᵢ) N, p*)/∂x` at `x = 0`, where `Iw = I ∘ w(G, ·)`
+    is the warped current image (central differences of five warped samples), `∇I*` the reference's central
+    differences, `Aᵢ` = `ddvs_service.lie.SL3_GENERATORS` and `N` the normalisation `q = (p − c) / s`;
+  - gain block: `φ_k(p*) · Iw` with `φ_k` the bilinear (tent) basis of the R×C gain grid;
+  - bias: 1;
+- robust weight `w(r / σ)` (0 none, 1 Huber k = 1.345, 2 Tukey c = 4.685), σ supplied by the caller;
+- sums: upper triangle of `Jᵀ W J`, `Jᵀ W r`, statistics (valid and inlier counts, Σ r²), and a log-spaced
+  histogram of `|r|` whose median gives the next MAD scale.
+
+Pixels whose reference value or reference neighbours are NaN (the caller's mask) or whose five warped samples are
+not all inside the current image are excluded. Reductions follow PLATFORM-NOTES: each thread owns a band of rows,
+accumulates in registers row by row and writes one partial; a second serial pass adds the partials. Parameters
+come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array (`work_size`).
+"""
+
+
+import warnings
+
+import taichi as ti
+
+from kernels.sampling import grid_coordinate, homography_apply, projected_sample, tent
+
+# The accumulators are unrolled on purpose (they live in registers); silence Taichi's compile-time-length warning.
+warnings.filterwarnings("ignore", message="You are unrolling more than", category=SyntaxWarning)
+
+# Offsets in the float32 parameter array.
+PARAMS_G = 0  # 9: G row-major, level pixels of the reference → level pixels of the current image
+PARAMS_NORM = 9  # 3: cx, cy, s of the normalisation q = (p − c) / s used by the sl(3) increment
+PARAMS_ROI = 12  # 4: u0, v0, u1, v1 (inclusive integer bounds of the ROI at this level)
+PARAMS_SPAN = 16  # 4: x0, y0, x1, y1 of the gain-grid node span (level pixels)
+PARAMS_BETA = 20  # 1: bias β (grey levels)
+PARAMS_SIGMA = 21  # 1: robust scale σ (grey levels)
+PARAMS_ROBUST = 22  # 1: 0 none, 1 Huber, 2 Tukey
+PARAMS_BANDS = 23  # 1: number of row bands (≤ MAX_BANDS)
+PARAMS_GAINS = 24  # R·C gain node values, row-major
+
+N_GEOMETRIC = 8
+N_STATS = 4  # n_valid, n_inliers, Σ r², median |r| (the last one only in the final sums)
+MAX_BANDS = 32
+NBINS = 256
+LOG2_MIN = -8.0
+LOG2_MAX = 12.0
+HUBER_K = 1.345
+TUKEY_C = 4.685
+INLIER_C = TUKEY_C  # |r| ≤ 4.685 σ counts as an inlier whatever the loss
+
+
+def n_params(grid_rows: int, grid_cols: int) -> int:
+    """Number of unknowns: 8 sl(3) coordinates, one gain per grid node, one bias."""
+    return N_GEOMETRIC + grid_rows * grid_cols + 1
+
+
+def n_acc(n: int) -> int:
+    """Length of one accumulator: upper triangle of `JᵀWJ`, `JᵀWr`, statistics."""
+    return n * (n + 1) // 2 + n + N_STATS
+
+
+def work_size(n: int) -> int:
+    """Size of the float32 work array for `n` unknowns: final sums, per-band partials, per-band histograms."""
+    return n_acc(n) * (1 + MAX_BANDS) + NBINS * MAX_BANDS
+
+
+@ti.func
+def robust_weight(r: ti.f32, sigma: ti.f32, kind: ti.i32) -> ti.f32:
+    """IRLS weight `w(r)` of the M-estimator `kind` (0 none, 1 Huber, 2 Tukey) with scale `sigma` (grey levels)."""
+    a = ti.abs(r)
+    w = 1.0
+    if kind == 1:
+        k = HUBER_K * sigma
+        if a > k:
+            w = k / a
+    elif kind == 2:
+        c = TUKEY_C * sigma
+        w = 0.0
+        if a < c:
+            t = 1.0 - (r / c) ** 2
+            w = t * t
+    return w
+
+
+@ti.func
+def gain_at(params: ti.template(), u: ti.f32, v: ti.f32, grid_rows: ti.template(), grid_cols: ti.template()):
+    """Bilinear gain surface `S(u, v)` and the node weights `φ` (row-major vector of length R·C)."""
+    tc = grid_coordinate(u, params[PARAMS_SPAN + 0], params[PARAMS_SPAN + 2], grid_cols)
+    tr = grid_coordinate(v, params[PARAMS_SPAN + 1], params[PARAMS_SPAN + 3], grid_rows)
+    phi = ti.Vector.zero(ti.f32, grid_rows * grid_cols)
+    gain = 0.0
+    for i in ti.static(range(grid_rows)):
+        for j in ti.static(range(grid_cols)):
+            f = tent(tr, i) * tent(tc, j)
+            phi[i * grid_cols + j] = f
+            gain += f * params[PARAMS_GAINS + i * grid_cols + j]
+    return gain, phi
+
+
+@ti.kernel
+def planar_step(
+    ref: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    params: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    work: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    grid_rows: ti.template(),
+    grid_cols: ti.template(),
+):
+    """Evaluate residuals, robust weights and normal equations at the parameters in `params` (module docstring)."""
+    P = ti.static(N_GEOMETRIC + grid_rows * grid_cols + 1)
+    NT = ti.static(P * (P + 1) // 2)
+    NACC = ti.static(NT + P + N_STATS)
+    hist0 = ti.static(NACC * (1 + MAX_BANDS))
+    nb = ti.cast(params[PARAMS_BANDS], ti.i32)
+    u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
+    v0 = ti.cast(params[PARAMS_ROI + 1], ti.i32)
+    u1 = ti.cast(params[PARAMS_ROI + 2], ti.i32)
+    v1 = ti.cast(params[PARAMS_ROI + 3], ti.i32)
+    cx = params[PARAMS_NORM + 0]
+    cy = params[PARAMS_NORM + 1]
+    s = params[PARAMS_NORM + 2]
+    beta = params[PARAMS_BETA]
+    sigma = params[PARAMS_SIGMA]
+    kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
+    g0, g1, g3, g4, g6, g7 = params[0], params[1], params[3], params[4], params[6], params[7]
+    hr = ref.shape[0]
+    wr = ref.shape[1]
+    bin_scale = NBINS / (LOG2_MAX - LOG2_MIN)
+    # A CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
+    for it in range(nb * 512):
+        if it % 512 == 0:
+            b = it // 512
+            hoff = hist0 + b * NBINS
+            for k in range(NBINS):
+                work[hoff + k] = 0.0
+            acc = ti.Vector.zero(ti.f32, NACC)
+            rows = v1 - v0 + 1
+            for v in range(v0 + b * rows // nb, v0 + (b + 1) * rows // nb):
+                racc = ti.Vector.zero(ti.f32, NACC)
+                vu = ti.max(v - 1, 0)
+                vd = ti.min(v + 1, hr - 1)
+                for u in range(u0, u1 + 1):
+                    ul = ti.max(u - 1, 0)
+                    ur = ti.min(u + 1, wr - 1)
+                    ir = ref[v, u]
+                    gxr = (ref[v, ur] - ref[v, ul]) / (ur - ul)
+                    gyr = (ref[vd, u] - ref[vu, u]) / (vd - vu)
+                    x, y, z = homography_apply(params, PARAMS_G, ti.cast(u, ti.f32), ti.cast(v, ti.f32))
+                    c0, ok0 = projected_sample(cur, x, y, z)
+                    cl, okl = projected_sample(cur, x - g0, y - g3, z - g6)
+                    cr, okr = projected_sample(cur, x + g0, y + g3, z + g6)
+                    cu, oku = projected_sample(cur, x - g1, y - g4, z - g7)
+                    cd, okd = projected_sample(cur, x + g1, y + g4, z + g7)
+                    finite = ir + gxr + gyr == ir + gxr + gyr  # NaN marks masked-out reference pixels
+                    if finite and ok0 + okl + okr + oku + okd == 5:
+                        gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+                        r = gain * c0 + beta - ir
+                        gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
+                        gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
+                        du = u - cx  # = s · q_u
+                        dv = v - cy
+                        radial = (gx * du + gy * dv) / s
+                        J = ti.Vector.zero(ti.f32, P)
+                        J[0] = s * gx
+                        J[1] = s * gy
+                        J[2] = gy * du - gx * dv
+                        J[3] = gx * du - gy * dv
+                        J[4] = 3.0 * s * radial
+                        J[5] = gx * dv + gy * du
+                        J[6] = -du * radial
+                        J[7] = -dv * radial
+                        for k in ti.static(range(grid_rows * grid_cols)):
+                            J[N_GEOMETRIC + k] = phi[k] * c0
+                        J[P - 1] = 1.0
+                        w = robust_weight(r, sigma, kind)
+                        idx = 0
+                        for i in ti.static(range(P)):
+                            wji = w * J[i]
+                            for j in ti.static(range(i, P)):
+                                racc[idx] += wji * J[j]
+                                idx += 1
+                            racc[NT + i] += wji * r
+                        racc[NT + P + 0] += 1.0
+                        if ti.abs(r) <= INLIER_C * sigma:
+                            racc[NT + P + 1] += 1.0
+                        racc[NT + P + 2] += r * r
+                        lb = ti.log(ti.max(ti.abs(r), 2.0**LOG2_MIN)) / ti.log(2.0)
+                        k_bin = ti.min(ti.cast((lb - LOG2_MIN) * bin_scale, ti.i32), NBINS - 1)
+                        work[hoff + k_bin] = work[hoff + k_bin] + 1.0  # band-owned: plain store, no atomic
+                acc += racc
+            for k in ti.static(range(NACC)):
+                work[(1 + b) * NACC + k] = acc[k]
+    # Second pass (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        for k in range(NACC):
+            total = ti.cast(0.0, ti.f64)
+            for b in range(nb):
+                total += ti.cast(work[(1 + b) * NACC + k], ti.f64)
+            work[k] = ti.cast(total, ti.f32)
+        n_valid = 0.0
+        for k in range(NBINS):
+            for b in range(nb):
+                n_valid += work[hist0 + b * NBINS + k]
+        half = 0.5 * n_valid
+        cum = 0.0
+        median = 0.0
+        found = 0
+        for k in range(NBINS):
+            count = 0.0
+            for b in range(nb):
+                count += work[hist0 + b * NBINS + k]
+            if found == 0 and count > 0.0 and cum + count >= half:
+                frac = (half - cum) / count
+                median = 2.0 ** (LOG2_MIN + (k + frac) / bin_scale)
+                found = 1
+            cum += count
+        work[NACC - 1] = median
+
+
+@ti.kernel
+def render_compensated(
+    cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    params: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    grid_rows: ti.template(),
+    grid_cols: ti.template(),
+):
+    """`out[v − v0, u − u0] = S(p*) · I(w(G, p*)) + β` over the ROI (eq. (4)); NaN where the warp leaves `cur`."""
+    u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
+    v0 = ti.cast(params[PARAMS_ROI + 1], ti.i32)
+    for r, c in ti.ndrange(out.shape[0], out.shape[1]):
+        u = ti.cast(u0 + c, ti.f32)
+        v = ti.cast(v0 + r, ti.f32)
+        x, y, z = homography_apply(params, PARAMS_G, u, v)
+        val, ok = projected_sample(cur, x, y, z)
+        gain, _phi = gain_at(params, u, v, grid_rows, grid_cols)
+        out[r, c] = gain * val + params[PARAMS_BETA] if ok == 1 else ti.math.nan
+

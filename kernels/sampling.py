@@ -1,0 +1,62 @@
+"""Taichi functions shared by the registration kernels: homography mapping, bilinear sampling, gain surface.
+
+Conventions: images are `[row, col]` float32 arrays; pixel coordinates are 0-based pixel centres, `u` = column,
+`v` = row. A point is *inside* an image of size H×W when `0 ≤ u ≤ W − 1` and `0 ≤ v ≤ H − 1` (all four bilinear
+neighbours exist); samples outside are reported invalid and must be excluded by the caller (no border extension).
+"""
+
+
+import taichi as ti
+
+
+@ti.func
+def homography_apply(params: ti.template(), off: ti.i32, u: ti.f32, v: ti.f32):
+    """Homogeneous image `[x, y, z] = G · [u, v, 1]` of a pixel, `G` row-major at `params[off:off + 9]`."""
+    x = params[off + 0] * u + params[off + 1] * v + params[off + 2]
+    y = params[off + 3] * u + params[off + 4] * v + params[off + 5]
+    z = params[off + 6] * u + params[off + 7] * v + params[off + 8]
+    return x, y, z
+
+
+@ti.func
+def bilinear(img: ti.template(), x: ti.f32, y: ti.f32):
+    """Bilinear sample of `img` at column `x`, row `y`; returns `(value, ok)` with `ok = 0` outside (value 0)."""
+    h = img.shape[0]
+    w = img.shape[1]
+    val = 0.0
+    ok = 0
+    if x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0:
+        x0 = ti.min(ti.cast(ti.floor(x), ti.i32), w - 2)
+        y0 = ti.min(ti.cast(ti.floor(y), ti.i32), h - 2)
+        ax = x - x0
+        ay = y - y0
+        top = (1.0 - ax) * img[y0, x0] + ax * img[y0, x0 + 1]
+        bottom = (1.0 - ax) * img[y0 + 1, x0] + ax * img[y0 + 1, x0 + 1]
+        val = (1.0 - ay) * top + ay * bottom
+        ok = 1
+    return val, ok
+
+
+@ti.func
+def projected_sample(img: ti.template(), x: ti.f32, y: ti.f32, z: ti.f32):
+    """Bilinear sample at the dehomogenised point `(x / z, y / z)`; invalid when `z ≤ 1e-8` or outside the image."""
+    val = 0.0
+    ok = 0
+    if z > 1e-8:
+        val, ok = bilinear(img, x / z, y / z)
+    return val, ok
+
+
+@ti.func
+def tent(t: ti.f32, node: ti.f32) -> ti.f32:
+    """Linear interpolation weight of grid node `node` at grid coordinate `t` (the 1-D bilinear basis)."""
+    return ti.max(0.0, 1.0 - ti.abs(t - node))
+
+
+@ti.func
+def grid_coordinate(x: ti.f32, lo: ti.f32, hi: ti.f32, n: ti.template()) -> ti.f32:
+    """Grid coordinate in `[0, n − 1]` of `x` for `n` nodes spread evenly from `lo` to `hi` (0 when `n == 1`)."""
+    t = 0.0
+    if ti.static(n > 1):
+        t = ti.min(ti.max((x - lo) / ti.max(hi - lo, 1e-6), 0.0), 1.0) * (n - 1)
+    return t
