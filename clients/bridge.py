@@ -18,6 +18,7 @@ zero velocities when the last twist is older than a timeout.
 
 from __future__ import annotations
 
+import json
 import math
 import site
 import sys
@@ -273,3 +274,9 @@ def bridge_from_config(config: dict) -> TwistBridge:
         config["urdf"], config["camera_link"], pose_from_dict(config.get("mount", {})), config.get("joints")
     )
     return TwistBridge(kinematics, BridgeLimits(**config.get("limits", {})))
+
+
+def load_bridge(path: str | Path) -> TwistBridge:
+    """Read a JSON bridge configuration file and build the bridge (`bridge_from_config`)."""
+    with open(path, encoding="utf-8") as f:
+        return bridge_from_config(json.load(f))

@@ -37,10 +37,11 @@ class TargetMesh:
     uvs: NDArray[np.float32]
 
 
-def surface_mesh(width: float, height: float, depth: float, cells: int) -> TargetMesh:
-    """Grid mesh of `z = depth · ((2x/width)² − (2y/height)²)` over a width × height rectangle (metres).
+def surface_mesh(width: float, height: float, curvature: float, cells: int) -> TargetMesh:
+    """Grid mesh of `z = curvature · (x² − y²)` (metres, curvature in 1/m) over a width × height rectangle.
 
-    `depth = 0` is a flat poster; `depth ≠ 0` a saddle whose corners are `depth` metres off the plane. UV (0, 0) is the
+    `curvature = 0` is a flat poster; otherwise the hyperbolic paraboloid of `sim/surfaces.py::Saddle` with
+    `a = 1/curvature`, texture glued by (x, y) the same way, so its exact ground truth applies. UV (0, 0) is the
     texture's top-left corner at (−width/2, −height/2). Triangles wind counter-clockwise as seen from the viewer side
     (z < 0), so the textured face is the one a camera in front of the target sees; normals point to the viewer.
     """
@@ -49,10 +50,9 @@ def surface_mesh(width: float, height: float, depth: float, cells: int) -> Targe
     s = np.linspace(0.0, 1.0, cells + 1)
     uu, vv = np.meshgrid(s, s)  # [row = v, col = u]
     x, y = (uu - 0.5) * width, (vv - 0.5) * height
-    a, b = 2.0 / width, 2.0 / height
-    z = depth * ((a * x) ** 2 - (b * y) ** 2)
+    z = curvature * (x**2 - y**2)
     # Normal towards the viewer (−z side) of the surface z = f(x, y): (f_x, f_y, −1) normalised.
-    n = np.stack([2 * depth * a * a * x, -2 * depth * b * b * y, -np.ones_like(x)], axis=-1)
+    n = np.stack([2 * curvature * x, -2 * curvature * y, -np.ones_like(x)], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     idx = np.arange((cells + 1) ** 2).reshape(cells + 1, cells + 1)
     tl, tr, bl, br = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
@@ -91,14 +91,14 @@ def load_texture(path: str | None, seed: int = 0, size: tuple[int, int] = (640, 
 
 @dataclass(frozen=True)
 class TargetSpec:
-    """A textured target: `kind` "poster" (flat) or "saddle", size in metres, `depth` = saddle corner offset (m),
-    `T_world_target` its pose, `texture` an image path (None: procedural from `seed`), `cells` mesh resolution."""
+    """A textured target: `kind` "poster" (flat) or "saddle" (`z = curvature (x² − y²)`, curvature in 1/m), size in
+    metres, `T_world_target` its pose, `texture` an image path (None: procedural from `seed`), `cells` per side."""
 
     kind: str
     width: float
     height: float
     T_world_target: F64
-    depth: float = 0.0
+    curvature: float = 0.0
     texture: str | None = None
     seed: int = 0
     cells: int = 1
@@ -106,11 +106,11 @@ class TargetSpec:
     def __post_init__(self) -> None:
         if self.kind not in TARGET_KINDS:
             raise ValueError(f"target kind {self.kind!r} unknown; expected one of {TARGET_KINDS}")
-        if self.kind == "poster" and self.depth != 0.0:
-            raise ValueError("a poster is flat: depth must be 0 (use kind 'saddle' for a curved target)")
+        if self.kind == "poster" and self.curvature != 0.0:
+            raise ValueError("a poster is flat: curvature must be 0 (use kind 'saddle' for a curved target)")
 
     def mesh(self) -> TargetMesh:
-        return surface_mesh(self.width, self.height, self.depth, self.cells)
+        return surface_mesh(self.width, self.height, self.curvature, self.cells)
 
     def texture_image(self) -> NDArray[np.uint8]:
         """The grey texture: the image file, or a procedural one at `TEXELS_PER_METRE`."""
@@ -195,7 +195,7 @@ def scene_config_from_dict(config: dict) -> ArmSceneConfig:
     targets = tuple(
         TargetSpec(
             kind=t["kind"], width=float(t["width"]), height=float(t["height"]),
-            T_world_target=pose_from_dict(t.get("pose", {})), depth=float(t.get("depth", 0.0)),
+            T_world_target=pose_from_dict(t.get("pose", {})), curvature=float(t.get("curvature", 0.0)),
             texture=t.get("texture"), seed=int(t.get("seed", 0)), cells=int(t.get("cells", 1)),
         )
         for t in config.get("targets", [])

@@ -38,7 +38,7 @@ def _surface_error(sim: ArmSim, target: TargetSpec, pixel_offset: float = 0.0) -
     rng = np.random.default_rng(3)
     s, r = rng.uniform(0.05, 0.95, (2, 20000))  # texture coordinates (u, v) in [0, 1]
     x, y = (s - 0.5) * target.width, (r - 0.5) * target.height
-    z = target.depth * ((2 * x / target.width) ** 2 - (2 * y / target.height) ** 2)
+    z = target.curvature * (x**2 - y**2)
     T_cam_target = pose_inv(sim.camera_pose()) @ target.T_world_target
     P = T_cam_target[:3, :3] @ np.stack([x, y, z]) + T_cam_target[:3, 3:4]
     p = sim.intrinsics.K @ (P / P[2])
@@ -53,15 +53,15 @@ def _surface_error(sim: ArmSim, target: TargetSpec, pixel_offset: float = 0.0) -
 
 
 def test_surface_mesh_faces_the_viewer_and_covers_the_texture():
-    mesh = surface_mesh(0.4, 0.3, 0.05, 4)
+    mesh = surface_mesh(0.4, 0.3, 1.0, 4)
     a, b, c = (mesh.vertices[mesh.triangles[:, i]].astype(np.float64) for i in range(3))
     geometric = np.cross(b - a, c - a)
     assert np.all(geometric[:, 2] < 0), "every triangle must face −z (the viewer side of a target)"
     assert np.all(mesh.normals[:, 2] < 0)
     assert mesh.uvs.min() == 0.0 and mesh.uvs.max() == 1.0
     corners = mesh.vertices[[0, 4, 20, 24]]
-    np.testing.assert_allclose(corners[:, 2], [0.0, 0.0, 0.0, 0.0], atol=1e-7)  # corners of (2x/w)² − (2y/h)²
-    np.testing.assert_allclose(mesh.vertices[2, 2], -0.05, atol=1e-7)  # top edge middle: −depth
+    np.testing.assert_allclose(corners[:, 2], 0.2**2 - 0.15**2, atol=1e-7)  # z = x² − y² at (±0.2, ±0.15)
+    np.testing.assert_allclose(mesh.vertices[2, 2], -0.15**2, atol=1e-7)  # top edge middle (0, −0.15)
 
 
 def test_reference_pose_is_reached_and_matches_sapien_camera(sim, config):
@@ -89,11 +89,11 @@ def test_poster_projects_with_opencv_intrinsics(sim, config, where):
 
 def test_saddle_projects_with_opencv_intrinsics(config):
     T_world_target = config.targets[0].T_world_target
-    saddle = TargetSpec("saddle", 0.8, 0.6, T_world_target, depth=0.08, seed=11, cells=48)
+    saddle = TargetSpec("saddle", 0.8, 0.6, T_world_target, curvature=1.0, seed=11, cells=48)  # a = 1 m
     sim = ArmSim(dataclasses.replace(config, targets=(saddle,), show_robot=False))
     sim.place_camera(pose(so3_exp(np.deg2rad([8.0, -6.0, 5.0])), [0.03, -0.02, -0.55]))
     error = _surface_error(sim, saddle)
-    flat = dataclasses.replace(saddle, depth=0.0, kind="poster")
+    flat = dataclasses.replace(saddle, curvature=0.0, kind="poster")
     assert error < 3.0, f"saddle: mean abs error {error:.2f} grey levels"
     assert _surface_error(sim, flat) > 2.0 * error, "the check must see the saddle's depth"
 
