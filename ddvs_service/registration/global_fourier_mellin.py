@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -40,6 +41,10 @@ class FourierMellinConfig:
     translation_peaks: int = 2  # translation peaks kept per (θ, s)
     context: float = 2.5  # reference spectrum window = ROI grown by this factor (clipped to the image)
     whitening_floor: float = 1e-2  # phase correlation: X / (|X| + floor · max|X|)
+    search_width: int = 160  # hypotheses are searched on images downsampled to at most this width
+    grid_rotations: int = 18  # uniform rotation grid over 360° added to the log-polar peaks
+    grid_scales: int = 3  # scales of the grid, log-spaced strictly inside scale_range
+    max_hypotheses: int = 12  # best translation peaks (by correlation height) scored at full resolution
 
 
 @dataclass(frozen=True)
@@ -121,7 +126,9 @@ def peaks(surface: F32, k: int, radius: int, allowed: NDArray[np.bool_] | None =
     return found
 
 
-def rotation_scale_candidates(reference_window: F32, current: F32, cfg: FourierMellinConfig) -> list[tuple[float, float]]:
+def rotation_scale_candidates(
+    reference_window: F32, current: F32, cfg: FourierMellinConfig
+) -> list[tuple[float, float]]:
     """(θ mod π radians, s) candidates for `current` ≈ `reference_window` rotated by θ and scaled by s."""
     lp_ref = log_polar(log_spectrum(reference_window), cfg)
     lp_cur = log_polar(log_spectrum(current), cfg)
@@ -159,48 +166,136 @@ def reference_window(reference: F32, roi: Roi, context: float) -> F32:
     x, y, w, h = roi
     H, W = reference.shape
     cx, cy, hw, hh = x + w / 2.0, y + h / 2.0, context * w / 2.0, context * h / 2.0
-    x0, x1 = max(0, int(round(cx - hw))), min(W, int(round(cx + hw)))
-    y0, y1 = max(0, int(round(cy - hh))), min(H, int(round(cy + hh)))
+    x0, x1 = max(0, round(cx - hw)), min(W, round(cx + hw))
+    y0, y1 = max(0, round(cy - hh)), min(H, round(cy + hh))
     return reference[y0:y1, x0:x1]
 
 
-def translation_hypotheses(
-    template: F32, roi: Roi, current: F32, theta: float, scale: float, cfg: FourierMellinConfig
-) -> list[F64]:
-    """Similarity warps (θ, s fixed) whose translation comes from phase correlation of the warped template."""
-    x, y, w, h = roi
-    Hc, Wc = current.shape
-    m = int(np.ceil(0.5 * scale * np.hypot(w, h))) + 1  # margin: a ROI half outside the image is still found
-    ch, cw = Hc + 2 * m, Wc + 2 * m
-    canvas_centre = ((cw - 1) / 2.0, (ch - 1) / 2.0)
-    weighted = ((template - template.mean()) * hann2d(h, w)).astype(np.float32)
-    patch_centre = ((w - 1) / 2.0, (h - 1) / 2.0)
-    to_patch = np.linalg.inv(similarity(theta, scale, patch_centre, canvas_centre))
-    canvas = np.empty((ch, cw), np.float32)
-    valid = np.empty((ch, cw), np.float32)
-    warp_homography(weighted, canvas, valid, np.ascontiguousarray(to_patch, np.float32).ravel(), 0.0, 0.0)
-    padded = np.zeros((ch, cw), np.float32)
-    padded[m : m + Hc, m : m + Wc] = current - current.mean()
-    surface = phase_correlation(canvas, padded, cfg.whitening_floor)
-    roi_centre = (x + patch_centre[0], y + patch_centre[1])
-    hypotheses = []
-    for r, c in peaks(surface, cfg.translation_peaks, radius=max(2, int(0.25 * scale * min(w, h)))):
-        dr = r if r < ch / 2 else r - ch
-        dc = c if c < cw / 2 else c - cw
-        centre_in_current = (canvas_centre[0] + dc - m, canvas_centre[1] + dr - m)
-        hypotheses.append(similarity(theta, scale, roi_centre, centre_in_current))
-    return hypotheses
+def _dft_size(n: int) -> int:
+    """Smallest 2^a·3^b·5^c ≥ n (fast FFT length)."""
+    m = n
+    while True:
+        k = m
+        for f in (2, 3, 5):
+            while k % f == 0:
+                k //= f
+        if k == 1:
+            return m
+        m += 1
+
+
+def disc(shape: tuple[int, int], centre: tuple[float, float], radius: float) -> F32:
+    """1 inside the disc of `radius` pixels around `centre` (u, v), 0 outside."""
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return ((u - centre[0]) ** 2 + (v - centre[1]) ** 2 <= radius * radius).astype(np.float32)
+
+
+class TranslationSearch:
+    """Normalised cross-correlation of a rotated/scaled disc template against the zero-padded current image, by FFT.
+
+    The template is the disc inscribed in the ROI, so the current image's local sums under it depend only on the
+    scale: they are computed once per scale and reused for every rotation. Positions whose local variance is below
+    `(0.05 σ_I)²` per pixel (flat or empty areas) are not trusted."""
+
+    def __init__(self, current: F32, margin: int, radius: float) -> None:
+        Hc, Wc = current.shape
+        self.shape = (_dft_size(Hc + 2 * margin), _dft_size(Wc + 2 * margin))
+        self.margin = margin
+        self.radius = radius
+        padded = np.zeros(self.shape, np.float32)
+        padded[margin : margin + Hc, margin : margin + Wc] = current - current.mean()
+        self.spectrum = np.fft.rfft2(padded)
+        self.spectrum_sq = np.fft.rfft2(padded * padded)
+        self.var_floor = (0.05 * float(current.std())) ** 2
+        self.centre = (float(self.shape[1] // 2), float(self.shape[0] // 2))
+        self._local_std: dict[float, tuple[F32, F32]] = {}
+
+    def _disc_stats(self, scale: float) -> tuple[F32, F32]:
+        """(disc mask at the canvas centre, local standard deviation × √N of the current image under it)."""
+        if scale not in self._local_std:
+            mask = disc(self.shape, self.centre, scale * self.radius)
+            F = np.conj(np.fft.rfft2(mask))
+            n = float(mask.sum())
+            s1 = np.fft.irfft2(self.spectrum * F, s=self.shape)
+            s2 = np.fft.irfft2(self.spectrum_sq * F, s=self.shape)
+            var = np.maximum(s2 - s1 * s1 / n, n * self.var_floor)
+            self._local_std[scale] = (mask, np.sqrt(var).astype(np.float32))
+        return self._local_std[scale]
+
+    def peaks(
+        self, template: F32, theta: float, scale: float, k: int
+    ) -> list[tuple[float, tuple[float, float]]]:
+        """Up to k (NCC value, where the template centre lands in the current image) for the template turned by θ
+        and scaled by s."""
+        h, w = template.shape
+        mask, local_std = self._disc_stats(scale)
+        to_patch = np.linalg.inv(similarity(theta, scale, ((w - 1) / 2.0, (h - 1) / 2.0), self.centre))
+        canvas = np.empty(self.shape, np.float32)
+        valid = np.empty(self.shape, np.float32)
+        warp_homography(template, canvas, valid, np.ascontiguousarray(to_patch, np.float32).ravel(), 0.0, 0.0)
+        inside = mask * valid
+        canvas = (canvas - float((canvas * inside).sum()) / max(float(inside.sum()), 1.0)) * inside
+        norm = float(np.sqrt((canvas * canvas).sum()))
+        if norm == 0.0:
+            return []
+        ncc = np.fft.irfft2(self.spectrum * np.conj(np.fft.rfft2(canvas)), s=self.shape) / (norm * local_std)
+        ch, cw = self.shape
+        found = []
+        for r, c in peaks(ncc.astype(np.float32), k, radius=max(2, int(0.5 * scale * self.radius))):
+            dr = r if r < ch / 2 else r - ch
+            dc = c if c < cw / 2 else c - cw
+            value = float(ncc[round(r) % ch, round(c) % cw])
+            found.append((value, (self.centre[0] + dc - self.margin, self.centre[1] + dr - self.margin)))
+        return found
+
+
+def _rescale_pixels(factor: float) -> F64:
+    """Homography from full-resolution pixel centres to those of an image downsampled by `factor`."""
+    return np.array([[1.0 / factor, 0.0, 0.5 / factor - 0.5], [0.0, 1.0 / factor, 0.5 / factor - 0.5], [0, 0, 1.0]])
+
+
+def rotation_scale_grid(cfg: FourierMellinConfig) -> list[tuple[float, float]]:
+    """Uniform (θ, s) grid over ±180° and the scale range: guarantees coverage where the spectrum peaks miss."""
+    lo, hi = cfg.scale_range
+    thetas = np.arange(cfg.grid_rotations) * (2.0 * np.pi / cfg.grid_rotations)
+    scales = np.exp(np.linspace(np.log(lo), np.log(hi), cfg.grid_scales + 2)[1:-1])
+    return [(float(t), float(s)) for t in thetas for s in scales]
 
 
 def fourier_mellin_hypotheses(reference: F32, roi: Roi, current: F32, cfg: FourierMellinConfig) -> list[Hypothesis]:
-    """All Fourier–Mellin hypotheses (θ and θ + π for each rotation/scale peak, several translations each), scored."""
+    """Ranked similarity hypotheses (lowest photometric cost first) for the reference ROI in the current image.
+
+    Search runs on images downsampled so the current one is at most `cfg.search_width` wide; (θ, s) candidates are
+    the log-polar peaks (θ and θ + π) followed by the uniform grid; every candidate's translation peaks are ranked by
+    correlation height and the best `cfg.max_hypotheses` are scored photometrically at full resolution."""
     x, y, w, h = roi
-    template = reference[y : y + h, x : x + w]
-    window = reference_window(reference, roi, cfg.context)
+    factor = max(1.0, current.shape[1] / cfg.search_width)
+    D = _rescale_pixels(factor)
+    small_ref = cv2.resize(reference, None, fx=1.0 / factor, fy=1.0 / factor, interpolation=cv2.INTER_AREA)
+    small_cur = cv2.resize(current, None, fx=1.0 / factor, fy=1.0 / factor, interpolation=cv2.INTER_AREA)
+    sx0, sy0 = D[0, 0] * x + D[0, 2], D[1, 1] * y + D[1, 2]
+    sx, sy = int(np.floor(sx0 + 0.5)), int(np.floor(sy0 + 0.5))
+    sw, sh = max(8, round(w / factor)), max(8, round(h / factor))
+    sroi = (sx, sy, sw, sh)
+    template = np.ascontiguousarray(small_ref[sy : sy + sh, sx : sx + sw])
+    window = reference_window(small_ref, sroi, cfg.context)
+    peaks_mod_pi = rotation_scale_candidates(window, small_cur, cfg)
+    candidates = [(t, s) for t_mod_pi, s in peaks_mod_pi for t in (t_mod_pi, t_mod_pi + np.pi)]
+    candidates += rotation_scale_grid(cfg)
+    radius = 0.5 * min(sw, sh)
+    search = TranslationSearch(small_cur, int(np.ceil(cfg.scale_range[1] * radius)) + 1, radius)
+    ranked = []
+    for theta, scale in candidates:
+        for value, centre in search.peaks(template, theta, scale, cfg.translation_peaks):
+            ranked.append((value, theta, scale, centre))
+    ranked.sort(key=lambda item: -item[0])
+    small_centre = (sx + (sw - 1) / 2.0, sy + (sh - 1) / 2.0)
+    full_template = reference[y : y + h, x : x + w]
     out = []
-    for theta_mod_pi, scale in rotation_scale_candidates(window, current, cfg):
-        for theta in (theta_mod_pi, theta_mod_pi + np.pi):
-            for G in translation_hypotheses(template, roi, current, theta, scale, cfg):
-                sampled, valid = sample_through(current, G, (h, w), (x, y))
-                out.append(Hypothesis(G=G, source="fourier-mellin", score=photometric_score(template, sampled, valid)))
+    for _, theta, scale, centre in ranked[: cfg.max_hypotheses]:
+        G = np.linalg.inv(D) @ similarity(theta, scale, small_centre, centre) @ D
+        G /= np.cbrt(np.linalg.det(G))
+        sampled, valid = sample_through(current, G, (h, w), (x, y))
+        out.append(Hypothesis(G=G, source="fourier-mellin", score=photometric_score(full_template, sampled, valid)))
+    out.sort(key=lambda hyp: hyp.score.cost)
     return out
