@@ -14,6 +14,7 @@ from collections.abc import Sequence
 
 # name -> (module implementing it, one-line help). Add a line when an issue builds a new subcommand.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "experiment": ("sim.experiment_cli", "run the paper's experiments on the simulated plant (synthetic)"),
 }
 
 

@@ -1,0 +1,55 @@
+"""`ddvs experiment synthetic`: the paper's synthetic experiment (see `sim.experiment_synthetic`).
+
+Prints a human-readable summary, or one JSON line with `--json` (converged, images to convergence, the paper's
+count, final translation (m) and rotation (deg) errors, retreat (m), coupling measures), and saves plots of v(t)
+and of the 3-D trajectory into `--out` (default reports/synthetic).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+# The geometry sources offered on the command line; keep in step with experiment_synthetic.GEOMETRY_SOURCES
+# (listed here so that `ddvs --help` does not import numpy and the plant).
+GEOMETRIES = ("exact",)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
+    sp = sub.add_parser("synthetic", help="servo to the reference pose in front of the horse saddle (paper IV-A)")
+    sp.add_argument("--law", choices=("dvs", "ddvs"), required=True, help="dvs: reduced error (13); ddvs: (16)")
+    sp.add_argument("--geometry", choices=GEOMETRIES, default="exact", help="source of G, e, rho* (default exact)")
+    sp.add_argument("--t", nargs=3, type=float, metavar=("TX", "TY", "TZ"), help="initial translation (m)")
+    sp.add_argument("--r", nargs=3, type=float, metavar=("RX", "RY", "RZ"), help="initial rotation vector (rad)")
+    sp.add_argument("--threshold", type=float, default=1e-3, help="stop threshold on the error norm (default 1e-3)")
+    sp.add_argument("--gain", type=float, default=0.4, help="control gain λ for every axis (1/s, default 0.4)")
+    sp.add_argument("--max-images", type=int, default=20000, help="image budget (default 20000)")
+    sp.add_argument("--scaling", choices=("sl3", "euclidean"), default="sl3", help="scale gauge of G (default sl3)")
+    sp.add_argument("--json", action="store_true", help="print one JSON line instead of text")
+    sp.add_argument("--out", type=Path, default=Path("reports/synthetic"), help="directory for the plots")
+    sp.add_argument("--no-plots", action="store_true", help="do not save plots")
+
+
+def run(args: argparse.Namespace) -> int:
+    from sim.experiment_synthetic import GEOMETRY_SOURCES, PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
+
+    setup = SyntheticSetup(
+        t=tuple(args.t) if args.t else PAPER_T,
+        r=tuple(args.r) if args.r else PAPER_R,
+        gain=args.gain,
+        threshold=args.threshold,
+        max_images=args.max_images,
+        scaling=args.scaling,
+    )
+    result = run_synthetic(args.law, setup, GEOMETRY_SOURCES[args.geometry]())
+    summary = result.summary()
+    if not args.no_plots:
+        summary["plots"] = [str(p) for p in save_plots(result, args.out, setup)]
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        for key, value in summary.items():
+            print(f"{key:>26}: {value}")
+    return 0 if result.converged else 1
