@@ -4,8 +4,9 @@
 1. hypotheses: direct Fourier–Mellin search (`global_fourier_mellin.py`: any in-plane rotation, scale 0.6–1.6, ROI
    anywhere with part of it outside the image), plus, when `config.feature_source` is 'orb' or 'akaze', one RANSAC
    homography from features (`global_features.py`);
-2. the `max_refined` best distinct hypotheses (by robust photometric cost, `global_cost.py`) are refined by a
-   `Refiner` – the planar direct engine (coarse to fine, eqs. (4)–(5) with ρ* ≡ 0) by default. A refiner returns one
+2. the `max_refined` best distinct hypotheses (by robust photometric cost, `global_cost.py`) are screened by a short
+   refinement, and the `final_refined` best distinct screened ones are refined fully, by a `Refiner` – the planar
+   direct engine (coarse to fine, eqs. (4)–(5) with ρ* ≡ 0) by default. A refiner returns one
    or several refinements per start (hook for the general model of eq. (2) started from several epipole
    directions) and the current image sampled at its own warp, so any model is scored the same way;
 3. the refinements are ranked by the robust photometric cost; `margin` = cost of the best *different* solution (warp
@@ -19,7 +20,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -50,9 +51,10 @@ class Refinement:
 
 class Refiner(Protocol):
     """Refines a starting warp `G0` of a fixed reference ROI in `current`; may return several refinements
-    (e.g. the general model started from several epipole directions)."""
+    (e.g. the general model started from several epipole directions). `quick` asks for a short screening run
+    (few iterations) used to rank many starts before the full refinement of the best ones."""
 
-    def __call__(self, current: F32, G0: F64) -> list[Refinement]: ...
+    def __call__(self, current: F32, G0: F64, quick: bool = False) -> list[Refinement]: ...
 
 
 RefinerFactory = Callable[[F32, Roi], Refiner]
@@ -61,15 +63,18 @@ RefinerFactory = Callable[[F32, Roi], Refiner]
 class PlanarRefiner:
     """The planar direct engine (`registration.planar.PlanarRegistration`, coarse to fine) as a `Refiner`."""
 
-    def __init__(self, reference: F32, roi: Roi, config: Any = None) -> None:
+    def __init__(self, reference: F32, roi: Roi, config: Any = None, screen_iterations: int = 4) -> None:
         from ddvs_service.registration.config import RegistrationConfig
         from ddvs_service.registration.planar import PlanarRegistration
 
         self.roi = roi
-        self.problem = PlanarRegistration(reference, roi=roi, config=config or RegistrationConfig())
+        full = config or RegistrationConfig()
+        self.problem = PlanarRegistration(reference, roi=roi, config=full)
+        quick = replace(full, max_iterations=screen_iterations)
+        self.screen = PlanarRegistration(reference, roi=roi, config=quick)
 
-    def __call__(self, current: F32, G0: F64) -> list[Refinement]:
-        result = self.problem.run(current, G0=G0)
+    def __call__(self, current: F32, G0: F64, quick: bool = False) -> list[Refinement]:
+        result = (self.screen if quick else self.problem).run(current, G0=G0)
         if not np.all(np.isfinite(result.G)):
             return []
         x, y, w, h = self.roi
@@ -83,7 +88,8 @@ class GlobalInitConfig:
 
     fourier_mellin: FourierMellinConfig = field(default_factory=FourierMellinConfig)
     feature_source: Literal["none", "orb", "akaze"] = "none"
-    max_refined: int = 6  # distinct hypotheses refined
+    max_refined: int = 6  # distinct hypotheses screened by a short refinement
+    final_refined: int = 2  # distinct screened candidates refined fully
     distinct_px: float = 3.0  # two warps closer than this (RMS over the ROI) are the same solution
     max_cost: float = 0.3  # winner's robust photometric cost above this → LOST
     min_margin: float = 0.1  # best different solution's cost minus the winner's below this → LOST
@@ -184,11 +190,22 @@ class GlobalInitializer:
         x, y, w, h = roi
         template = ref[y : y + h, x : x + w]
         refine = self.refiner_factory(ref, roi)
-        candidates = [
-            Candidate(hyp.source, hyp.score.cost, r, photometric_score(template, r.sampled, r.valid))
-            for hyp in starts
-            for r in refine(cur, hyp.G)
-        ]
+
+        def scored(source: str, start_cost: float, G0: F64, quick: bool) -> list[Candidate]:
+            return [
+                Candidate(source, start_cost, r, photometric_score(template, r.sampled, r.valid))
+                for r in refine(cur, G0, quick=quick)
+            ]
+
+        screened = sorted((c for hyp in starts for c in scored(hyp.source, hyp.score.cost, hyp.G, True)),
+                          key=lambda c: c.score.cost)
+        finalists: list[Candidate] = []
+        for c in screened:
+            if len(finalists) == cfg.final_refined:
+                break
+            if all(warp_rms(c.refinement.G, f.refinement.G, roi) > cfg.distinct_px for f in finalists):
+                finalists.append(c)
+        candidates = [full for c in finalists for full in scored(c.source, c.start_cost, c.refinement.G, False)]
         candidates.sort(key=lambda c: c.score.cost)
         return _decide(candidates, len(raw), roi, cfg)
 
