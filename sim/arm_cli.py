@@ -56,5 +56,8 @@ def run(args: argparse.Namespace) -> int:
             node.run(stop)
         finally:
             node.close()
-    logging.getLogger(__name__).info("published %d frames, dropped %d", node.frames, node.dropped)
+    mean_ms = 1e3 * node.render_seconds / max(node.frames, 1)
+    logging.getLogger(__name__).info(
+        "published %d frames, dropped %d, render %.1f ms/frame on average", node.frames, node.dropped, mean_ms
+    )
     return 0

@@ -90,6 +90,7 @@ class ArmNode:
         self._epoch_ns = time.time_ns()
         self.frames = 0
         self.dropped = 0
+        self.render_seconds = 0.0  # total time spent in `ArmSim.render` (mean = render_seconds / frames)
 
     def close(self) -> None:
         self._commands.close()
@@ -105,7 +106,9 @@ class ArmNode:
         stamp_ns = self.stamp_ns()
         stamp = Time.from_ns(stamp_ns)
         state = self.sim.joint_state()
+        started = time.perf_counter()
         image = self.sim.render()
+        self.render_seconds += time.perf_counter() - started
         joints = JointState(Header(stamp, WORLD_FRAME_ID), list(state.names), state.position, state.velocity)
         self._pub["arm_joint_states"].put(encode_joint_state(joints))
         info = CameraInfo.from_intrinsics(self.sim.intrinsics, Header(stamp, CAMERA_FRAME_ID))

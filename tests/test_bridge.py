@@ -141,3 +141,15 @@ def test_commanded_twist_is_reproduced_by_the_simulated_camera(scene, bridge_fil
     t_err, r_err = _reproduce(scene, bridge_file, rate)
     print(f"{scene} at {rate:.0f} Hz: translation error {100 * t_err:.3f} %, rotation error {100 * r_err:.3f} %")
     assert t_err < 0.01 and r_err < 0.01
+
+
+@pytest.mark.parametrize("scene, bridge_file", [("ur5_poster.json", "ur5_bridge.json"),
+                                                ("ur5_saddle.json", "ur5_bridge.json"),
+                                                ("panda_poster.json", "panda_bridge.json")])
+def test_shipped_configurations_load_and_describe_the_same_camera(scene, bridge_file):
+    config = load_scene_config(CONFIGS / scene)
+    bridge = load_bridge(CONFIGS / bridge_file)
+    plant = ArmKinematics(config.urdf, config.camera.link, config.camera.T_link_cam)
+    q = np.array(config.home)[: plant.dof]
+    columns = [plant.joint_names.index(n) for n in bridge.joint_names]
+    np.testing.assert_allclose(bridge.kinematics.camera_pose(q[columns]), plant.camera_pose(q), atol=1e-12)
