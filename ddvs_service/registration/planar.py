@@ -29,6 +29,8 @@ F64 = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
 MAD_TO_SIGMA = 1.4826
 DEGENERATE_RCOND = 1e-9
+TRANSLATION = (0, 1)
+SIMILARITY = (0, 1, 2, 4)  # sl(3) coordinates of translation, rotation and isotropic scale
 
 
 @dataclass(frozen=True)
@@ -177,8 +179,23 @@ class PlanarRegistration:
         iterations: list[int] = []
         converged, reason = False, ""
         for level in reversed(self.levels):
-            count, converged, reason, failed = self._solve_level(level, self.reference[level.index],
-                                                                 pyramid[level.index], state)
+            ref_l, cur_l = self.reference[level.index], pyramid[level.index]
+            count = 0
+            if level is self.levels[-1] and G0 is None:
+                # Cold start: match the photometric moments, then settle the similarity part with the photometric
+                # unknowns frozen (a misaligned least-squares gain shrinks towards 0 and erases the signal).
+                self._match_moments(level, ref_l, cur_l, state)
+                failed = False
+                for subset in (TRANSLATION, SIMILARITY):
+                    more, _, reason, failed = self._solve_level(level, ref_l, cur_l, state, subset, photometric=False)
+                    count += more
+                    if failed:
+                        break
+                if failed:
+                    iterations.append(count)
+                    break
+            more, converged, reason, failed = self._solve_level(level, ref_l, cur_l, state)
+            count += more
             iterations.append(count)
             if failed:
                 break
@@ -215,8 +232,34 @@ class PlanarRegistration:
         p[PARAMS_BANDS] = self.config.bands
         p[PARAMS_GAINS:] = state.gains.reshape(-1)
 
-    def _solve_level(self, level: _Level, ref: F32, cur: F32, state: _State) -> tuple[int, bool, str, bool]:
-        """Gauss-Newton at one level; updates `state`; returns (iterations, converged, reason, fatal failure)."""
+    def _match_moments(self, level: _Level, ref: F32, cur: F32, state: _State) -> None:
+        """Set a uniform gain and the bias so that `S·I(w(G, p*)) + β` has the mean and spread of `I*` over the ROI."""
+        from kernels.planar_step import render_compensated
+
+        state.gains[:] = 1.0
+        state.beta = 0.0
+        self._fill_params(level, level.D @ state.G @ np.linalg.inv(level.D), state)
+        u0, v0, u1, v1 = level.bounds
+        warped = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
+        render_compensated(cur, self._params, warped, self.grid[0], self.grid[1])
+        both = np.isfinite(warped) & np.isfinite(ref[v0 : v1 + 1, u0 : u1 + 1])
+        a, b = ref[v0 : v1 + 1, u0 : u1 + 1][both], warped[both]
+        if a.size > 1 and b.std() > 1e-3:
+            gain = float(a.std() / b.std())
+            state.gains[:] = gain
+            state.beta = float(a.mean() - gain * b.mean())
+
+    def _solve_level(
+        self,
+        level: _Level,
+        ref: F32,
+        cur: F32,
+        state: _State,
+        geometric: tuple[int, ...] = tuple(range(8)),
+        photometric: bool = True,
+    ) -> tuple[int, bool, str, bool]:
+        """Gauss-Newton at one level over the sl(3) coordinates `geometric` (and the photometric unknowns unless
+        `photometric` is False); updates `state`; returns (iterations, converged, reason, fatal failure)."""
         from kernels.planar_step import planar_step
 
         cfg = self.config
@@ -227,6 +270,9 @@ class PlanarRegistration:
         N_inv = np.linalg.inv(N)
         corners = level.corners
         sl_G, sl_S, sl_b = self.layout.slice("G"), self.layout.slice("S"), self.layout.slice("beta")
+        free = np.ones(n, dtype=bool)
+        free[sl_G] = np.isin(np.arange(8), geometric)
+        free[sl_S] = free[sl_b] = photometric
         for it in range(1, cfg.max_iterations + 1):
             G_l = D @ state.G @ D_inv
             self._fill_params(level, G_l, state)
@@ -242,8 +288,8 @@ class PlanarRegistration:
             state.scale = max(MAD_TO_SIGMA * median, cfg.scale_floor)
             H = np.zeros((n, n))
             H[self._triu] = acc[:nt]
-            H = H + np.triu(H, 1).T
-            g = acc[nt : nt + n]
+            H = (H + np.triu(H, 1).T)[np.ix_(free, free)]
+            g = acc[nt : nt + n][free]
             d = np.diag(H)
             if not np.all(d > 0):
                 return it, False, f"degenerate normal equations at level {level.index} (textureless ROI?)", True
@@ -252,7 +298,8 @@ class PlanarRegistration:
             if not eig[0] > DEGENERATE_RCOND * eig[-1]:
                 return it, False, (f"degenerate normal equations at level {level.index} (textureless ROI?): "
                                    f"reciprocal condition {eig[0] / eig[-1]:.1e}"), True
-            delta = np.linalg.solve(H, -g)
+            delta = np.zeros(n)
+            delta[free] = np.linalg.solve(H, -g)
             if not np.all(np.isfinite(delta)):
                 return it, False, f"non-finite update at level {level.index}", True
             before = _project(G_l, corners)

@@ -1,0 +1,58 @@
+"""Stateful planar tracker for a video stream: registers each frame warm-started from the last good estimate.
+
+The state is `G` (SL(3), reference → current full-image pixels), the gains `S`, the bias `β` (eq. (4)) and the
+robust scale σ. A frame whose registration converged replaces the state; any other frame leaves it unchanged and
+is reported with `converged = False` and the reason. `track` never raises and never returns a non-finite `G`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ddvs_service.lie import sl3_normalize
+from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.registration.planar import PlanarRegistration, Roi
+from ddvs_service.registration.result import RegistrationResult
+
+
+class Tracker:
+    """Track the ROI of `reference` through successive frames (same size as the reference)."""
+
+    def __init__(
+        self,
+        reference: ArrayLike,
+        roi: Roi | None = None,
+        config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
+        mask: ArrayLike | None = None,
+    ) -> None:
+        self._problem = PlanarRegistration(reference, roi=roi, mask=mask, config=config)
+        self.reset()
+
+    @property
+    def G(self) -> NDArray[np.float64]:
+        """Current estimate (3×3, det 1), reference → current pixels."""
+        return self._G.copy()
+
+    def reset(self, G: ArrayLike | None = None) -> None:
+        """Restart from `G` (identity when None; any scale, positive determinant), unit gains, zero bias."""
+        self._G = np.eye(3) if G is None else sl3_normalize(np.asarray(G, dtype=np.float64).reshape(3, 3))
+        self._gains = np.ones(self._problem.grid)
+        self._beta = 0.0
+        self._scale: float | None = None
+
+    def track(self, current: ArrayLike) -> RegistrationResult:
+        """Register `current` from the last good state; on failure keep the state and report why."""
+        try:
+            result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta, scale0=self._scale)
+        except Exception as exc:  # the tracker's contract: report, never raise
+            return self._failure(f"error: {type(exc).__name__}: {exc}")
+        if not np.all(np.isfinite(result.G)):
+            return self._failure(f"non-finite estimate ({result.reason})")
+        if result.converged:
+            self._G, self._gains, self._beta, self._scale = result.G, result.S, result.beta, result.scale
+        return result
+
+    def _failure(self, reason: str) -> RegistrationResult:
+        return RegistrationResult(G=self._G.copy(), S=self._gains.copy(), beta=self._beta, iterations=[],
+                                  converged=False, reason=reason)
