@@ -14,6 +14,7 @@ from collections.abc import Sequence
 
 # name -> (module implementing it, one-line help). Add a line when an issue builds a new subcommand.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "register": ("ddvs_service.register_cli", "planar direct registration of two images (prints one JSON line)"),
     "sim": ("sim.sim_cli", "run a simulated plant over Zenoh (`ddvs sim arm`: the SAPIEN arm)"),
     "bridge": ("clients.bridge_cli", "camera twist → arm joint velocities (Pinocchio, any URDF + camera mount)"),
     "experiment": ("sim.experiment_cli", "run the paper's experiments on the simulated plant (synthetic)"),
