@@ -22,8 +22,8 @@ import numpy as np
 import sapien
 from numpy.typing import ArrayLike, NDArray
 
-from clients.bridge import ArmKinematics, resolve_urdf
 from ddvs_service.camera import Intrinsics
+from ddvs_service.kinematics import ArmKinematics, resolve_urdf
 from ddvs_service.lie import pose
 from sim.arm_scene import ArmSceneConfig, TargetSpec
 

@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from clients.bridge import pose_from_dict
 from ddvs_service.camera import Intrinsics
+from ddvs_service.kinematics import pose_from_dict
 
 F64 = NDArray[np.float64]
 TARGET_KINDS = ("poster", "saddle")

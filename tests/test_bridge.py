@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clients.bridge import ArmKinematics, BridgeLimits, TwistBridge, bridge_from_config, load_bridge
+from clients.bridge import BridgeLimits, TwistBridge, bridge_from_config, load_bridge
+from ddvs_service.kinematics import ArmKinematics
 from ddvs_service.lie import pose_inv, se3_exp, so3_log
 from sim.arm import ArmSim
 from sim.arm_scene import load_scene_config
