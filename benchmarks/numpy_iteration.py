@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from kernels.planar_step import (
     HUBER_K,
     INLIER_C,
+    MASK_LIMIT,
     PARAMS_BETA,
     PARAMS_G,
     PARAMS_GAINS,
@@ -93,7 +94,7 @@ def numpy_step(ref: NDArray, cur: NDArray, params: NDArray, grid: tuple[int, int
     (c0, k0), (cl, kl), (cr, kr), (cu, ku), (cd, kd) = (
         sample(0, 0), sample(-1, 0), sample(1, 0), sample(0, -1), sample(0, 1)
     )
-    valid = k0 & kl & kr & ku & kd & np.isfinite(ir + gxr + gyr)
+    valid = k0 & kl & kr & ku & kd & (ir > MASK_LIMIT) & (np.abs(gxr) < -MASK_LIMIT) & (np.abs(gyr) < -MASK_LIMIT)
 
     tc = np.zeros_like(u) if cols == 1 else np.clip((u - sx0) / max(sx1 - sx0, 1e-6), 0, 1) * (cols - 1)
     tr = np.zeros_like(v) if rows == 1 else np.clip((v - sy0) / max(sy1 - sy0, 1e-6), 0, 1) * (rows - 1)

@@ -12,7 +12,8 @@ For every reference pixel `p*` of the region of interest (level pixels, `u` = co
 - sums: upper triangle of `Jᵀ W J`, `Jᵀ W r`, statistics (valid and inlier counts, Σ r²), and a log-spaced
   histogram of `|r|` whose median gives the next MAD scale.
 
-Pixels whose reference value or reference neighbours are NaN (the caller's mask) or whose five warped samples are
+Pixels whose reference value or reference neighbours are masked (set to `MASKED`, ≤ `MASK_LIMIT` after
+filtering) or whose five warped samples are
 not all inside the current image are excluded. Reductions follow PLATFORM-NOTES: each thread owns a band of rows,
 accumulates in registers row by row and writes one partial; a second serial pass adds the partials. Parameters
 come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array (`work_size`).
@@ -39,6 +40,8 @@ PARAMS_ROBUST = 22  # 1: 0 none, 1 Huber, 2 Tukey
 PARAMS_BANDS = 23  # 1: number of row bands (≤ MAX_BANDS)
 PARAMS_GAINS = 24  # R·C gain node values, row-major
 
+MASKED = -1.0e7  # reference value of excluded pixels (NaN tests are unreliable under Taichi's fast math)
+MASK_LIMIT = -1.0e5  # any pyramid tap on a MASKED pixel keeps the value below this
 N_GEOMETRIC = 8
 N_STATS = 4  # n_valid, n_inliers, Σ r², median |r| (the last one only in the final sums)
 MAX_BANDS = 32
@@ -152,8 +155,8 @@ def planar_step(
                     cr, okr = projected_sample(cur, x + g0, y + g3, z + g6)
                     cu, oku = projected_sample(cur, x - g1, y - g4, z - g7)
                     cd, okd = projected_sample(cur, x + g1, y + g4, z + g7)
-                    finite = ir + gxr + gyr == ir + gxr + gyr  # NaN marks masked-out reference pixels
-                    if finite and ok0 + okl + okr + oku + okd == 5:
+                    unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
+                    if unmasked and ok0 + okl + okr + oku + okd == 5:
                         gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
                         r = gain * c0 + beta - ir
                         gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)

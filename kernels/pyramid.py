@@ -2,7 +2,8 @@
 
 Pixel-centre convention: level-(l+1) pixel `(c, r)` is centred on level-l point `(2c + 0.5, 2r + 0.5)`, i.e.
 `p_{l+1} = (p_l + 0.5) / 2 − 0.5`; the 4×4 filter taps `2c − 1 … 2c + 2` are symmetric about that point.
-Taps beyond the border are clamped. NaN pixels (masked out) propagate: an output pixel is NaN when any tap is.
+Taps beyond the border are clamped. Masked pixels (`planar_step.MASKED`, −1e7) propagate: any masked tap
+leaves the output below −1e5.
 """
 
 

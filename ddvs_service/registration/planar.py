@@ -24,6 +24,7 @@ from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey, level_matrix
 from ddvs_service.registration.layout import ParamLayout
 from ddvs_service.registration.result import RegistrationResult
+from kernels.planar_step import MASK_LIMIT
 
 F64 = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
@@ -104,7 +105,7 @@ class PlanarRegistration:
         config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
     ) -> None:
         from kernels.backend import init
-        from kernels.planar_step import PARAMS_GAINS, n_acc, n_params, work_size
+        from kernels.planar_step import MASKED, PARAMS_GAINS, n_acc, n_params, work_size
 
         init()
         self.config = config
@@ -115,7 +116,7 @@ class PlanarRegistration:
             m = np.asarray(mask)
             if m.shape != ref.shape:
                 raise ValueError(f"mask has shape {m.shape}, expected the reference's {ref.shape}")
-            ref[~m.astype(bool)] = np.nan  # NaN marks excluded pixels for the kernels
+            ref[~m.astype(bool)] = MASKED
         self.levels = self._make_levels(build_pyramid(ref, config.levels))
         self.reference = build_pyramid(ref, len(self.levels))
         self.grid = config.gain_grid
@@ -139,7 +140,7 @@ class PlanarRegistration:
             v1 = min(math.floor((y + h) / k) - 1, ref.shape[0] - 1)
             if index > 0 and min(u1 - u0 + 1, v1 - v0 + 1) < self.config.min_level_size:
                 break
-            n_pixels = int(np.isfinite(ref[v0 : v1 + 1, u0 : u1 + 1]).sum())
+            n_pixels = int((ref[v0 : v1 + 1, u0 : u1 + 1] > MASK_LIMIT).sum())
             if n_pixels == 0:
                 if index == 0:
                     raise ValueError("the mask excludes every pixel of the ROI; expected some pixels to register")
@@ -242,7 +243,7 @@ class PlanarRegistration:
         u0, v0, u1, v1 = level.bounds
         warped = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
         render_compensated(cur, self._params, warped, self.grid[0], self.grid[1])
-        both = np.isfinite(warped) & np.isfinite(ref[v0 : v1 + 1, u0 : u1 + 1])
+        both = np.isfinite(warped) & (ref[v0 : v1 + 1, u0 : u1 + 1] > MASK_LIMIT)
         a, b = ref[v0 : v1 + 1, u0 : u1 + 1][both], warped[both]
         if a.size > 1 and b.std() > 1e-3:
             gain = float(a.std() / b.std())
