@@ -7,7 +7,6 @@ illumination `S · I + β` and seeded Gaussian noise are applied. Float32 throug
 float64 reference intersection: `sim/surfaces.py`. Parameters are packed in one float32 array (layout `P_*`).
 """
 
-
 import numpy as np
 import taichi as ti
 from numpy.typing import NDArray
@@ -68,22 +67,34 @@ def _render(
     depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     key: ti.u32,
 ):
+    # Parameters read once into registers: inside the loop the compiler could not hoist loads that may alias
+    # the output arrays.
+    k00, k01, k02, k11, k12 = p[P_KINV], p[P_KINV + 1], p[P_KINV + 2], p[P_KINV + 3], p[P_KINV + 4]
+    r00, r01, r02 = p[P_R + 0], p[P_R + 1], p[P_R + 2]
+    r10, r11, r12 = p[P_R + 3], p[P_R + 4], p[P_R + 5]
+    r20, r21, r22 = p[P_R + 6], p[P_R + 7], p[P_R + 8]
+    ox, oy, oz = p[P_O], p[P_O + 1], p[P_O + 2]
+    saddle = p[P_KIND] > 0.5
+    a = p[P_A]
+    g0, g1, g2, g3, g4, g5 = p[P_GAIN], p[P_GAIN + 1], p[P_GAIN + 2], p[P_GAIN + 3], p[P_GAIN + 4], p[P_GAIN + 5]
+    bias, sigma, background, quantize = p[P_BIAS], p[P_NOISE], p[P_BACKGROUND], p[P_QUANTIZE] > 0.5
     th, tw = texture.shape[0], texture.shape[1]
     su = tw / p[P_EXTENT]  # texels per metre
     sv = th / p[P_EXTENT + 1]
-    for row, col in image:
-        xn = p[P_KINV] * col + p[P_KINV + 1] * row + p[P_KINV + 2]
-        yn = p[P_KINV + 3] * row + p[P_KINV + 4]
-        dx = p[P_R + 0] * xn + p[P_R + 1] * yn + p[P_R + 2]
-        dy = p[P_R + 3] * xn + p[P_R + 4] * yn + p[P_R + 5]
-        dz = p[P_R + 6] * xn + p[P_R + 7] * yn + p[P_R + 8]
-        ox, oy, oz = p[P_O], p[P_O + 1], p[P_O + 2]
+    width = image.shape[1]
+    for i in range(image.shape[0] * width):  # flat loop: split evenly over the CPU threads
+        row = i // width
+        col = i - row * width
+        xn = k00 * col + k01 * row + k02
+        yn = k11 * row + k12
+        dx = r00 * xn + r01 * yn + r02
+        dy = r10 * xn + r11 * yn + r12
+        dz = r20 * xn + r21 * yn + r22
         s = ti.math.inf
-        if p[P_KIND] < 0.5:
+        if not saddle:
             if dz != 0.0:
                 s = _first_positive(-oz / dz, -1.0)
         else:
-            a = p[P_A]
             qa = dx * dx - dy * dy
             qb = 2.0 * (ox * dx - oy * dy) - a * dz
             qc = ox * ox - oy * oy - a * oz
@@ -97,7 +108,7 @@ def _render(
                         s = _first_positive(q / qa, qc / q)
             elif qb != 0.0:
                 s = _first_positive(-qc / qb, -1.0)
-        value = p[P_BACKGROUND]
+        value = background
         if s < ti.math.inf:
             u = _mirror((ox + s * dx) * su + 0.5 * tw - 0.5, tw)
             v = _mirror((oy + s * dy) * sv + 0.5 * th - 0.5, th)
@@ -109,22 +120,15 @@ def _render(
             fv = ti.min(ti.max(v - v0, 0.0), 1.0)
             top = texture[v0, u0] + fu * (texture[v0, u1] - texture[v0, u0])
             bottom = texture[v1, u0] + fu * (texture[v1, u1] - texture[v1, u0])
-            gain = (
-                p[P_GAIN]
-                + p[P_GAIN + 1] * xn
-                + p[P_GAIN + 2] * yn
-                + p[P_GAIN + 3] * xn * xn
-                + p[P_GAIN + 4] * xn * yn
-                + p[P_GAIN + 5] * yn * yn
-            )
-            value = gain * (top + fv * (bottom - top)) + p[P_BIAS]
-        if p[P_NOISE] > 0.0:
-            h1 = _hash(key ^ _hash(ti.cast(row * image.shape[1] + col, ti.u32) * ti.u32(2)))
+            gain = g0 + g1 * xn + g2 * yn + g3 * xn * xn + g4 * xn * yn + g5 * yn * yn
+            value = gain * (top + fv * (bottom - top)) + bias
+        if sigma > 0.0:
+            h1 = _hash(key ^ _hash(ti.cast(i, ti.u32) * ti.u32(2)))
             h2 = _hash(h1 ^ ti.u32(0x9E3779B9))
             u1n = (ti.cast(h1 >> 8, ti.f32) + 0.5) / 16777216.0
             u2n = ti.cast(h2 >> 8, ti.f32) / 16777216.0
-            value += p[P_NOISE] * ti.sqrt(-2.0 * ti.log(u1n)) * ti.cos(6.283185307179586 * u2n)
-        if p[P_QUANTIZE] > 0.5:
+            value += sigma * ti.sqrt(-2.0 * ti.log(u1n)) * ti.cos(6.283185307179586 * u2n)
+        if quantize:
             value = ti.min(ti.max(ti.round(value), 0.0), 255.0)
         image[row, col] = value
         depth[row, col] = s
