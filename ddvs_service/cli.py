@@ -14,10 +14,16 @@ from collections.abc import Sequence
 
 # name -> (module implementing it, one-line help). Add a line when an issue builds a new subcommand.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "serve": ("ddvs_service.service.serve_cli", "run the servo service: frames in, camera twists out (Zenoh)"),
     "register": ("ddvs_service.register_cli", "planar direct registration of two images (prints one JSON line)"),
     "sim": ("sim.sim_cli", "run a simulated plant over Zenoh (`ddvs sim arm`: the SAPIEN arm)"),
     "bridge": ("clients.bridge_cli", "camera twist → arm joint velocities (Pinocchio, any URDF + camera mount)"),
     "experiment": ("sim.experiment_cli", "run the paper's experiments on the simulated plant (synthetic)"),
+    "camera": ("clients.camera", "publish frames + camera info from a webcam or a video file"),
+    "ctl": ("clients.ctl", "send one command to the servo service (reference, start/stop, config) and print the reply"),
+    "monitor": ("clients.monitor", "live terminal view of a servo: state, error, rates, latencies (--once: JSON)"),
+    "record": ("clients.record", "record a servo run (status, twists, joints, ground truth, frames) to a directory"),
+    "plot": ("clients.plot", "plot a recording: velocities, error norm, 3-D camera trajectory, pose error"),
 }
 
 

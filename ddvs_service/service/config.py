@@ -1,0 +1,140 @@
+"""Configuration of the servo service (`ddvs serve --config FILE`), validated as a whole.
+
+A configuration is a JSON object (see `configs/serve/*.json`). Every field has a default; unknown fields are refused.
+`ServiceConfig.merged(patch)` applies a partial update (run-time `set_config`) and validates the result, including
+the control law's stability conditions (17), (26)–(28)/(34)/(35) for the configured intrinsics; a rejected update
+raises `ValueError` and changes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ddvs_service.camera import Intrinsics
+from ddvs_service.control.law import ControlConfig, ControlLaw
+from ddvs_service.protocol.session import SessionConfig
+from ddvs_service.registration.config import RegistrationConfig
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class IntrinsicsConfig(_Strict):
+    """Pinhole intrinsics in pixels (0-based pixel-centre principal point); used instead of `camera/info`."""
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+    def to_intrinsics(self) -> Intrinsics:
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+
+class RegistrationSettings(_Strict):
+    """The planar engine's settings (`RegistrationConfig`), plus the template: `roi = [x, y, w, h]` in reference
+    pixels, or `template_size = [w, h]` centred on the control point when `roi` is null."""
+
+    roi: tuple[int, int, int, int] | None = None
+    template_size: tuple[int, int] = (200, 150)
+    levels: int = 3
+    max_iterations: int = 30
+    gain_grid: tuple[int, int] = (1, 1)
+    robust: Literal["huber", "tukey", "none"] = "huber"
+    min_inlier_ratio: float = 0.5
+    global_init: bool = True
+    feature_source: Literal["none", "orb", "akaze"] = "none"
+
+    def engine_config(self) -> RegistrationConfig:
+        return RegistrationConfig(
+            levels=self.levels,
+            max_iterations=self.max_iterations,
+            gain_grid=self.gain_grid,
+            robust=self.robust,
+            min_inlier_ratio=self.min_inlier_ratio,
+        )
+
+
+class ControlSettings(_Strict):
+    """The servo law (`ControlConfig`): `law` dvs | dvs_reduced | ddvs, gains (1/s), control pixel, `c_star`,
+    saturation (m/s, rad/s) and the stop threshold on the error norm; `resume_factor` × stop threshold is the
+    hysteresis threshold above which a CONVERGED servo resumes."""
+
+    law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
+    gains: float | tuple[float, float, float, float, float, float] = 0.4
+    p_star: tuple[float, float] | None = None
+    c_star: tuple[float, float, float] | None = None
+    max_linear: float = Field(default=0.25, gt=0)
+    max_angular: float = Field(default=0.8, gt=0)
+    stop_threshold: float = Field(default=1e-3, gt=0)
+    resume_factor: float = Field(default=5.0, gt=1)
+
+    def law_config(self) -> ControlConfig:
+        return ControlConfig(
+            law=self.law,
+            gains=self.gains,
+            p_star=self.p_star,
+            c_star=self.c_star,
+            max_linear=self.max_linear,
+            max_angular=self.max_angular,
+            stop_threshold=self.stop_threshold,
+        )
+
+
+class ServiceConfig(_Strict):
+    """Everything `ddvs serve` needs. Safety: `frame_timeout_s` without a frame → zero twist; LOST when the
+    registration fails or its inlier ratio is below `registration.min_inlier_ratio`."""
+
+    prefix: str = "ddvs"
+    robot: str = "robot0"
+    zenoh: SessionConfig = Field(default_factory=SessionConfig)
+    state_dir: Path = Path("state")
+    intrinsics: IntrinsicsConfig | None = None
+    registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
+    control: ControlSettings = Field(default_factory=ControlSettings)
+    frame_timeout_s: float = Field(default=0.2, gt=0)
+    max_frame_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
+    status_every_frame: bool = True
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> ServiceConfig:
+        try:
+            return cls.model_validate(json.loads(Path(path).read_text(encoding="utf-8")))
+        except (OSError, json.JSONDecodeError, ValidationError) as exc:
+            raise ValueError(f"service configuration {path}: {exc}") from exc
+
+    def merged(self, patch: dict[str, Any], intrinsics: Intrinsics | None = None) -> ServiceConfig:
+        """A new configuration with `patch` (nested dicts merge) applied and fully checked (see `check`)."""
+        data = _deep_merge(self.model_dump(mode="json"), patch)
+        try:
+            new = type(self).model_validate(data)
+        except ValidationError as exc:
+            raise ValueError(f"invalid configuration: {exc}") from exc
+        new.check(intrinsics)
+        return new
+
+    def check(self, intrinsics: Intrinsics | None = None) -> None:
+        """Build the engine and law settings (raises `ValueError` naming what is wrong); with intrinsics, also the
+        law itself, which checks the stability conditions."""
+        self.registration.engine_config()
+        law = self.control.law_config()
+        intr = intrinsics or (self.intrinsics.to_intrinsics() if self.intrinsics else None)
+        if intr is not None:
+            ControlLaw(law, intr)
+
+
+def _deep_merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in patch.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out

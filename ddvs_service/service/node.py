@@ -1,0 +1,397 @@
+"""The long-running servo node: Zenoh in, camera twists out.
+
+One thread runs everything that touches the pipeline, in this order each turn: pending commands (queryable
+`servo/command`), the newest camera info, the newest frame (a `RingChannel(1)`: a slow turn skips frames, never
+queues them), then the watchdog (zero twist when no frame arrived within `frame_timeout_s` while servoing). Zenoh
+callbacks are not used for work, so they never block the session.
+
+Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
+frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the node keeps running.
+State (reference, configuration, servo state) is persisted atomically; a restarted node resumes from it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+from numpy.typing import NDArray
+
+from ddvs_service.protocol import (
+    Command,
+    Counters,
+    Header,
+    InvalidMessage,
+    Keys,
+    Latency,
+    LatestSubscriber,
+    ProtocolError,
+    Reply,
+    Roi,
+    StateSnapshot,
+    Status,
+    Time,
+    TwistStamped,
+    declare_publisher,
+    decode_camera_info,
+    decode_image,
+    dump,
+    encode_image,
+    encode_twist_stamped,
+    image_from_array,
+    open_session,
+    parse_command,
+)
+from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.logs import fields
+from ddvs_service.service.persistence import StateStore
+from ddvs_service.service.pipeline import ServoPipeline, StepResult
+from ddvs_service.service.state import ServoState, TransitionError
+
+log = logging.getLogger("ddvs.serve")
+ZERO6 = np.zeros(6)
+IDLE_SLEEP_S = 0.0005
+RESUMING_STATES = (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
+
+
+class ServoNode:
+    """The servo service. `run(stop)` serves until `stop` is set, then publishes a zero twist and closes."""
+
+    def __init__(self, config: ServiceConfig) -> None:
+        self.store = StateStore(config.state_dir)
+        persisted = self.store.load_json("config.json")
+        if persisted is not None:
+            config = ServiceConfig.model_validate({**persisted, "zenoh": config.zenoh.model_dump(mode="json"),
+                                                   "state_dir": str(config.state_dir)})
+            log.info("resuming the persisted configuration", extra=fields(path=str(self.store.dir)))
+        self.config = config
+        self.keys = Keys(config.prefix, config.robot)
+        intrinsics = config.intrinsics.to_intrinsics() if config.intrinsics else None
+        self.pipeline = ServoPipeline(config, intrinsics)
+        self.counters = {"frames": 0, "received": 0, "rejected": 0}
+        self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
+        self._resume_state: ServoState | None = None
+        self._reference_stamp_ns: int | None = None
+        self._last_frame_t = time.monotonic()
+        self._zero_sent = True
+        self._seq = 0
+        self._last_status: Status | None = None
+        self._lock = threading.Lock()
+        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None] | None = None
+        self._restore()
+
+    # --- persistence --------------------------------------------------------------------------------------------
+    def _restore(self) -> None:
+        state = self.store.load_json("state.json") or {}
+        reference = self.store.load_reference()
+        if reference is None:
+            return
+        roi = tuple(state["roi"]) if state.get("roi") else None
+        self._reference_stamp_ns = state.get("reference_stamp_ns")
+        self._resume_state = ServoState(state.get("state", "READY"))
+        self._restored_reference = (reference, roi)
+        self._try_adopt_restored()
+
+    def _try_adopt_restored(self) -> None:
+        restored = self._restored_reference
+        if restored is None or self.pipeline.intrinsics is None:
+            return
+        reference, roi = restored
+        self._restored_reference = None
+        try:
+            self.pipeline.set_reference(reference, roi)
+        except ValueError as exc:
+            log.error("persisted reference not usable", extra=fields(error=str(exc)))
+            return
+        if self._resume_state in RESUMING_STATES:
+            self.pipeline.machine.start()
+        elif self._resume_state == ServoState.STOPPED:
+            self.pipeline.machine.stop()
+        log.info("resumed persisted reference", extra=fields(state=self.pipeline.machine.state.value, roi=roi))
+
+    def _persist_state(self) -> None:
+        self.store.save_json("state.json", {
+            "state": self.pipeline.machine.state.value,
+            "roi": list(self.pipeline.roi) if self.pipeline.roi else None,
+            "reference_stamp_ns": self._reference_stamp_ns,
+        })
+
+    def _persist_config(self) -> None:
+        self.store.save_json("config.json", self.config.model_dump(mode="json", exclude={"zenoh", "state_dir"}))
+
+    # --- main loop ----------------------------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        """Serve until `stop` is set. Publishes a zero twist and closes every Zenoh object before returning."""
+        session = open_session(self.config.zenoh)
+        try:
+            self._serve(session, stop)
+        finally:
+            session.close()
+
+    def _serve(self, session: zenoh.Session, stop: threading.Event) -> None:
+        k = self.keys
+        frames = LatestSubscriber(session, k.key("camera_image"))
+        infos = LatestSubscriber(session, k.key("camera_info"))
+        arrivals = session.declare_subscriber(k.key("camera_image"), self._count_arrival)
+        queries = session.declare_queryable(k.key("servo_command"))
+        self._pub = {name: declare_publisher(session, k, name)
+                     for name in ("servo_twist", "servo_status", "servo_state", "servo_config", "servo_reference")}
+        token = session.liveliness().declare_token(k.key("liveliness"))
+        log.info("serving", extra=fields(robot=self.config.robot, prefix=self.config.prefix,
+                                          state=self.pipeline.machine.state.value))
+        self._publish_config()
+        self._publish_state("started")
+        try:
+            while not stop.is_set():
+                busy = self._poll_queries(queries)
+                busy |= self._poll_info(infos)
+                busy |= self._poll_frame(frames)
+                self._watchdog()
+                if not busy:
+                    time.sleep(IDLE_SLEEP_S)
+        finally:
+            self._publish_twist(ZERO6, Time.now())
+            self._publish_state("stopped: service shutting down")
+            token.undeclare()
+            queries.undeclare()
+            arrivals.undeclare()
+            frames.close()
+            infos.close()
+            for pub in self._pub.values():
+                pub.undeclare()
+            log.info("service stopped", extra=fields(**self.counters))
+
+    def _count_arrival(self, _sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.counters["received"] += 1
+
+    # --- inputs -------------------------------------------------------------------------------------------------
+    def _poll_info(self, infos: LatestSubscriber) -> bool:
+        sample = infos.try_recv()
+        if sample is None:
+            return False
+        if self.config.intrinsics is not None:
+            return True  # configured intrinsics take precedence over camera info
+        try:
+            intrinsics = decode_camera_info(sample.payload.to_bytes()).to_intrinsics()
+            self.pipeline.set_intrinsics(intrinsics)
+            self._try_adopt_restored()
+        except (ProtocolError, ValueError) as exc:
+            self.counters["rejected"] += 1
+            log.warning("camera info rejected", extra=fields(error=str(exc)))
+        return True
+
+    def _poll_frame(self, frames: LatestSubscriber) -> bool:
+        sample = frames.try_recv()
+        if sample is None:
+            return False
+        t_arrival = time.perf_counter()
+        self._last_frame_t = time.monotonic()
+        try:
+            msg = decode_image(sample.payload.to_bytes(), max_bytes=self.config.max_frame_bytes)
+            image = _grey_view(msg.array, msg.encoding)
+        except (ProtocolError, ValueError) as exc:
+            self._reject_frame(f"frame rejected: {exc}")
+            return True
+        t_decoded = time.perf_counter()
+        if self._pending_reference is not None:
+            self._adopt_next_frame(image, msg.header.stamp.to_ns())
+        try:
+            step = self.pipeline.step(image)
+        except ValueError as exc:
+            self._reject_frame(f"frame rejected: {exc}")
+            return True
+        self.counters["frames"] += 1
+        t_publish = time.perf_counter()
+        self._publish_twist(step.twist, msg.header.stamp, msg.header.frame_id)
+        t_done = time.perf_counter()
+        latency = {
+            "decode": (t_decoded - t_arrival) * 1e3,
+            "registration": step.timings_ms.get("registration", 0.0),
+            "control": step.timings_ms.get("control", 0.0),
+            "publish": (t_done - t_publish) * 1e3,
+            "total": (t_done - t_arrival) * 1e3,
+        }
+        self._publish_status(step, msg.header.stamp.to_ns(), latency)
+        return True
+
+    def _reject_frame(self, message: str) -> None:
+        self.counters["rejected"] += 1
+        log.warning(message, extra=fields(rejected=self.counters["rejected"]))
+        self._publish_twist(ZERO6, Time.now())
+        state = self.pipeline.machine.state.value
+        self._emit_status(Status(robot=self.config.robot, state=state, frame_stamp_ns=0, seq=self._next_seq(),
+                                 error=[0.0] * 6, error_norm=0.0, iterations=0, residual_rms=0.0, inlier_ratio=0.0,
+                                 twist=[0.0] * 6, latency_ms=Latency(decode=0, registration=0, control=0, publish=0,
+                                                                     total=0),
+                                 counters=self._counters(), message=message[:500]))
+
+    def _adopt_next_frame(self, image: NDArray, stamp_ns: int) -> None:
+        assert self._pending_reference is not None
+        _, roi = self._pending_reference
+        self._pending_reference = None
+        try:
+            self._set_reference(image, roi, stamp_ns, G0=np.eye(3))
+        except ValueError as exc:
+            log.error("reference from the next frame refused", extra=fields(error=str(exc)))
+
+    def _watchdog(self) -> None:
+        if self._zero_sent or time.monotonic() - self._last_frame_t < self.config.frame_timeout_s:
+            return
+        log.warning("no frame within the timeout: zero twist", extra=fields(timeout_s=self.config.frame_timeout_s))
+        self._publish_twist(ZERO6, Time.now())
+
+    # --- commands -----------------------------------------------------------------------------------------------
+    def _poll_queries(self, queries: zenoh.Queryable) -> bool:
+        query = queries.try_recv()
+        if query is None:
+            return False
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            reply = self.handle_command(payload)
+            query.reply(query.key_expr, dump(reply))
+        finally:
+            query.drop()
+        return True
+
+    def handle_command(self, payload: bytes) -> Reply:
+        """Execute one JSON command; any failure is a `Reply.failure` naming the problem, with state unchanged."""
+        try:
+            command = parse_command(payload)
+        except (InvalidMessage, ProtocolError) as exc:
+            log.warning("command rejected", extra=fields(error=str(exc)))
+            return Reply.failure(str(exc))
+        try:
+            data = self._execute(command)
+        except (TransitionError, ValueError, ProtocolError) as exc:
+            log.warning("command refused", extra=fields(op=command.op, id=command.id, error=str(exc)))
+            return Reply.failure(f"{command.op}: {exc}")
+        log.info("command executed", extra=fields(op=command.op, id=command.id,
+                                                    state=self.pipeline.machine.state.value))
+        return Reply.success(data)
+
+    def _execute(self, command: Command) -> dict[str, Any] | None:
+        machine = self.pipeline.machine
+        op = command.op
+        if op == "get_state":
+            return self._snapshot().model_dump(mode="json")
+        if op == "get_config":
+            return self.config.model_dump(mode="json", exclude={"zenoh"})
+        if op == "set_config":
+            assert command.config is not None
+            new = self.config.merged(command.config, self.pipeline.intrinsics)
+            self.pipeline.apply_config(new)
+            self.config = new
+            self._persist_config()
+            self._publish_config()
+            return new.model_dump(mode="json", exclude={"zenoh"})
+        if op == "set_reference":
+            roi = _roi_tuple(command.roi)
+            if command.source == "upload":
+                assert command.image is not None
+                self._set_reference(command.image.to_array(), roi, time.time_ns(), G0=None)
+                return self._snapshot().model_dump(mode="json")
+            self._pending_reference = ("next_frame", roi)
+            return {"pending": "the next camera frame becomes the reference"}
+        if op == "start":
+            machine.start()
+        elif op == "stop":
+            machine.stop()
+            self._publish_twist(ZERO6, Time.now())
+        elif op == "reset":
+            self.pipeline.clear_reference()
+            self.store.clear_reference()
+            self._reference_stamp_ns = None
+            self._publish_twist(ZERO6, Time.now())
+        self._persist_state()
+        self._publish_state(f"{op} command")
+        return self._snapshot().model_dump(mode="json")
+
+    def _set_reference(self, image: NDArray, roi: tuple[int, int, int, int] | None, stamp_ns: int,
+                       G0: NDArray | None) -> None:
+        roi_used = self.pipeline.set_reference(image, roi, G0=G0)
+        self._reference_stamp_ns = stamp_ns
+        reference = np.ascontiguousarray(image)
+        self.store.save_reference(reference)
+        self._persist_state()
+        if reference.dtype == np.uint8 and reference.ndim == 2:
+            self._pub["servo_reference"].put(encode_image(image_from_array(reference, "mono8")))
+        self._publish_state(f"reference set, roi {list(roi_used)}")
+
+    # --- outputs ------------------------------------------------------------------------------------------------
+    def _publish_twist(self, twist: NDArray[np.float64], stamp: Time, frame_id: str = "camera") -> None:
+        if not np.all(np.isfinite(twist)):
+            log.error("non-finite twist replaced by zero", extra=fields(twist=list(twist)))
+            twist = ZERO6
+        msg = TwistStamped(Header(stamp, frame_id), np.asarray(twist[:3]), np.asarray(twist[3:]))
+        self._pub["servo_twist"].put(encode_twist_stamped(msg))
+        self._zero_sent = not np.any(twist)
+
+    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float]) -> None:
+        previous = self._last_status.state if self._last_status else None
+        self._emit_status(Status(
+            robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
+            error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
+            residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
+            twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self._counters(),
+            message=step.message[:500],
+        ))
+        if previous != step.state.value:
+            self._persist_state()
+            self._publish_state(step.message or "frame")
+
+    def _emit_status(self, status: Status) -> None:
+        self._last_status = status
+        self._pub["servo_status"].put(dump(status))
+
+    def _publish_state(self, message: str) -> None:
+        self._pub["servo_state"].put(dump(self._snapshot(message)))
+
+    def _publish_config(self) -> None:
+        self._pub["servo_config"].put(dump_json(self.config.model_dump(mode="json", exclude={"zenoh"})))
+
+    def _snapshot(self, message: str = "") -> StateSnapshot:
+        G = self.pipeline.G
+        roi = self.pipeline.roi
+        return StateSnapshot(
+            robot=self.config.robot, state=self.pipeline.machine.state.value,
+            has_reference=self.pipeline.reference is not None, reference_stamp_ns=self._reference_stamp_ns,
+            roi=None if roi is None else Roi(x=roi[0], y=roi[1], width=roi[2], height=roi[3]),
+            homography=None if G is None else [float(x) for x in (G / G[2, 2]).reshape(-1)],
+            last_status=self._last_status, message=message[:500],
+        )
+
+    def _counters(self) -> Counters:
+        with self._lock:
+            received = self.counters["received"]
+        done = self.counters["frames"] + self.counters["rejected"]
+        return Counters(frames=self.counters["frames"], dropped=max(received - done, 0),
+                        rejected=self.counters["rejected"])
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+
+def dump_json(obj: dict[str, Any]) -> bytes:
+    return json.dumps(obj).encode()
+
+
+def _roi_tuple(roi: Roi | None) -> tuple[int, int, int, int] | None:
+    return None if roi is None else (roi.x, roi.y, roi.width, roi.height)
+
+
+def _grey_view(array: NDArray, encoding: str) -> NDArray:
+    """Grey pixels for the engine: mono images as they are (a view), colour converted (BT.601)."""
+    if array.ndim == 2:
+        if encoding == "mono16":
+            return array.astype(np.float32) * (255.0 / 65535.0)
+        return array
+    if encoding.startswith("rgb"):
+        array = array[..., 2::-1]
+    return array

@@ -1,0 +1,311 @@
+"""The servo service over real Zenoh sessions on loopback: every state transition, command and bad input.
+
+The service runs as its own process (`ddvs serve`; Taichi compiles kernels on the main thread only); the test plays
+camera and operator through its own Zenoh session. Frames are a real photograph (Oxford boat) warped by known
+homographies.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import zenoh
+from conftest import free_port
+
+from ddvs_service.protocol import (
+    Command,
+    Keys,
+    Reply,
+    SessionConfig,
+    decode_twist_stamped,
+    dump,
+    encode_image,
+    image_from_array,
+    open_session,
+)
+from ddvs_service.protocol.ros import Header, Time
+from ddvs_service.service.config import ServiceConfig
+
+W, H, F = 320, 240, 420.0
+BOAT = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "oxford" / "boat" / "img1.png"
+
+
+def scene() -> np.ndarray:
+    img = cv2.imread(str(BOAT), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, f"missing dataset image {BOAT}"
+    return cv2.resize(img[100:580, 150:790], (W, H), interpolation=cv2.INTER_AREA)
+
+
+def shifted(img: np.ndarray, dx: float, dy: float, angle_deg: float = 0.0) -> np.ndarray:
+    A = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), angle_deg, 1.0)
+    A[:, 2] += (dx, dy)
+    return cv2.warpAffine(img, A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def service_config(port: int, state_dir: Path) -> ServiceConfig:
+    return ServiceConfig.model_validate({
+        "robot": "t0",
+        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "state_dir": str(state_dir),
+        "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
+        "registration": {"template_size": [100, 80]},
+        "frame_timeout_s": 0.3,
+    })
+
+
+class Operator:
+    """The test's side: publishes frames, sends commands, collects twists and statuses."""
+
+    def __init__(self, port: int) -> None:
+        self.keys = Keys("ddvs", "t0")
+        self.session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+        self.twists: list[np.ndarray] = []
+        self.statuses: list[dict] = []
+        self._subs = [
+            self.session.declare_subscriber(self.keys.key("servo_twist"), self._on_twist),
+            self.session.declare_subscriber(self.keys.key("servo_status"), self._on_status),
+        ]
+        self.frames = self.session.declare_publisher(self.keys.key("camera_image"))
+        self._stamp = 0
+
+    def _on_twist(self, sample: zenoh.Sample) -> None:
+        self.twists.append(decode_twist_stamped(sample.payload.to_bytes()).vector)
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        self.statuses.append(json.loads(sample.payload.to_bytes()))
+
+    def command(self, raw: bytes | None = None, timeout: float = 20.0, **kwargs: object) -> Reply:
+        payload = dump(Command(**kwargs)) if raw is None else raw
+        for reply in self.session.get(self.keys.key("servo_command"), payload=payload, timeout=timeout):
+            assert reply.ok is not None, "the service answered with a Zenoh error"
+            return Reply.model_validate_json(reply.ok.payload.to_bytes())
+        raise AssertionError("no reply from the service")
+
+    def send(self, image: np.ndarray) -> dict:
+        """Publish one frame and wait for the status it produced."""
+        self._stamp += 1
+        n = len(self.statuses)
+        header = Header(Time.from_ns(self._stamp * 33_000_000), "camera")
+        self.frames.put(encode_image(image_from_array(image, "mono8", header)))
+        return self.wait_status(n)
+
+    def send_raw(self, payload: bytes) -> dict:
+        n = len(self.statuses)
+        self.frames.put(payload)
+        return self.wait_status(n)
+
+    def wait_status(self, n: int, timeout: float = 20.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while len(self.statuses) <= n:
+            assert time.monotonic() < deadline, "no status from the service"
+            time.sleep(0.002)
+        return self.statuses[-1]
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.frames.undeclare()
+        self.session.close()
+
+
+class Service:
+    """`ddvs serve` in a subprocess with a given configuration; `stop()` sends SIGTERM and returns the exit code."""
+
+    def __init__(self, config: ServiceConfig, tmp_path: Path) -> None:
+        cfg_file = tmp_path / "serve.json"
+        cfg_file.write_text(config.model_dump_json())
+        env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+        self.proc = subprocess.Popen([sys.executable, "-m", "ddvs_service.cli", "serve", "--config", str(cfg_file)],
+                                     stderr=subprocess.PIPE, text=True, env=env)
+
+    def wait_ready(self, op: Operator, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            assert self.proc.poll() is None, f"service exited: {self.proc.stderr.read() if self.proc.stderr else ''}"
+            try:
+                if op.command(op="get_state", timeout=1.0).ok:
+                    return
+            except AssertionError:
+                pass
+            assert time.monotonic() < deadline, "service did not come up"
+            time.sleep(0.2)
+
+    def stop(self) -> tuple[int, str]:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            code = self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise
+        return code, self.proc.stderr.read() if self.proc.stderr else ""
+
+
+@contextmanager
+def running_service(config: ServiceConfig, tmp_path: Path, port: int) -> Iterator[tuple[Service, Operator]]:
+    service = Service(config, tmp_path)
+    op = Operator(port)
+    try:
+        service.wait_ready(op)
+        yield service, op
+    finally:
+        code, _ = service.stop()
+        op.close()
+        assert code == 0
+
+
+@pytest.fixture
+def served(tmp_path: Path) -> Iterator[tuple[Service, Operator, ServiceConfig]]:
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    with running_service(config, tmp_path, port) as (service, op):
+        yield service, op, config
+
+
+def state_of(op: Operator) -> str:
+    reply = op.command(op="get_state")
+    assert reply.ok and reply.data is not None
+    return str(reply.data["state"])
+
+
+def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceConfig]) -> None:
+    _, op, _ = served
+    img = scene()
+    assert state_of(op) == "IDLE"
+    refused = op.command(op="start")
+    assert not refused.ok and "no reference" in (refused.error or "")
+    assert state_of(op) == "IDLE"
+
+    assert op.command(op="set_reference", source="next_frame").ok
+    status = op.send(img)
+    assert status["state"] == "READY"
+    assert state_of(op) == "READY"
+    assert op.command(op="start").ok
+
+    status = op.send(img)  # identical image: zero error → CONVERGED, zero twist
+    assert status["state"] == "CONVERGED" and status["error_norm"] < 1e-3
+    assert not np.any(op.twists[-1])
+
+    status = op.send(shifted(img, 6.0, -4.0, 3.0))  # the camera moved: servo resumes
+    assert status["state"] == "SERVOING", status
+    assert status["error_norm"] > 5e-3
+    twist = op.twists[-1]
+    assert np.all(np.isfinite(twist)) and np.linalg.norm(twist) > 0
+    lat = status["latency_ms"]
+    assert set(lat) == {"decode", "registration", "control", "publish", "total"} and lat["total"] > 0
+
+    rng = np.random.default_rng(1)
+    status = op.send(rng.integers(0, 256, (H, W), dtype=np.uint8))  # unrelated image → LOST, zero twist
+    assert status["state"] == "LOST", status
+    assert not np.any(op.twists[-1])
+
+    status = op.send(shifted(img, 2.0, 1.0))  # target back in view: re-acquired
+    assert status["state"] in ("SERVOING", "CONVERGED"), status
+
+    assert op.command(op="stop").ok
+    assert state_of(op) == "STOPPED"
+    assert op.send(shifted(img, 2.0, 1.0))["state"] == "STOPPED"
+    assert not np.any(op.twists[-1])
+    assert op.command(op="reset").ok
+    assert state_of(op) == "IDLE"
+
+
+def test_bad_frames_are_rejected_and_counted(served: tuple[Service, Operator, ServiceConfig]) -> None:
+    _, op, _ = served
+    img = scene()
+    assert op.command(op="set_reference", source="next_frame").ok
+    op.send(img)
+    assert op.command(op="start").ok
+    base = op.send(img)["counters"]["rejected"]
+    bad_payloads = [
+        b"\x00\x01\x00\x00garbage",
+        encode_image(image_from_array(img[:, :200].copy(), "mono8")),  # wrong size
+        encode_image(image_from_array(img, "mono8"))[:-100],  # truncated
+        encode_image(image_from_array(img, "mono8")).replace(b"mono8", b"mnoo8", 1),  # unknown encoding
+    ]
+    for i, payload in enumerate(bad_payloads, start=1):
+        status = op.send_raw(payload)
+        assert status["counters"]["rejected"] == base + i, status
+        assert "rejected" in status["message"]
+        assert status["state"] == "CONVERGED"  # state unchanged
+    assert op.send(img)["state"] == "CONVERGED"  # still serving
+
+
+def test_commands_and_configuration_are_validated(served: tuple[Service, Operator, ServiceConfig]) -> None:
+    _, op, _ = served
+    before = op.command(op="get_config").data
+    for raw in (b"not json", b'{"op": "fly"}', b'{"protocol_version": 99, "op": "start"}', b"[" * 10_000):
+        reply = op.command(raw=raw)
+        assert not reply.ok and reply.error
+    unstable = op.command(op="set_config", config={"control": {"gains": [0.4, 0.4, 0.4, -0.4, 0.4, 0.4]}})
+    assert not unstable.ok and "(27)" in (unstable.error or "")
+    wrong_type = op.command(op="set_config", config={"frame_timeout_s": "soon"})
+    assert not wrong_type.ok
+    unknown = op.command(op="set_config", config={"speed": 3})
+    assert not unknown.ok
+    assert op.command(op="get_config").data == before  # a rejected change changes nothing
+    ok = op.command(op="set_config", config={"control": {"law": "dvs_reduced", "gains": 0.5}})
+    assert ok.ok and ok.data is not None and ok.data["control"]["law"] == "dvs_reduced"
+    assert op.command(op="get_config").data["control"]["gains"] == 0.5
+
+
+def test_frame_timeout_publishes_zero_twist(served: tuple[Service, Operator, ServiceConfig]) -> None:
+    _, op, _ = served
+    img = scene()
+    assert op.command(op="set_reference", source="next_frame").ok
+    op.send(img)
+    assert op.command(op="start").ok
+    op.send(shifted(img, 8.0, 5.0, 4.0))
+    assert np.linalg.norm(op.twists[-1]) > 0
+    n = len(op.twists)
+    time.sleep(0.8)  # > frame_timeout_s
+    assert len(op.twists) > n and not np.any(op.twists[-1])
+
+
+def test_restart_resumes_persisted_state(tmp_path: Path) -> None:
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    img = scene()
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_config", config={"control": {"gains": 0.3}}).ok
+        assert op.command(op="set_reference", source="next_frame").ok
+        op.send(img)
+        assert op.command(op="start").ok
+        assert op.send(shifted(img, 5.0, 3.0))["state"] == "SERVOING"
+    with running_service(config, tmp_path, port) as (_, op):
+        snapshot = op.command(op="get_state").data
+        assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING"
+        assert op.command(op="get_config").data["control"]["gains"] == 0.3
+        status = op.send(shifted(img, 5.0, 3.0))  # global initialisation, then servoing again
+        assert status["state"] == "SERVOING", status
+
+
+def test_sigterm_publishes_zero_twist_and_exits_cleanly(tmp_path: Path) -> None:
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    service = Service(config, tmp_path)
+    op = Operator(port)
+    try:
+        service.wait_ready(op)
+        n = len(op.twists)
+        code, stderr = service.stop()
+        assert code == 0
+        time.sleep(0.2)
+        assert len(op.twists) > n and not np.any(op.twists[-1])
+        logs = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
+        assert any(entry["msg"] == "service stopped" for entry in logs)
+    finally:
+        op.close()
+        if service.proc.poll() is None:
+            service.proc.kill()
