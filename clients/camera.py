@@ -1,0 +1,268 @@
+"""`ddvs camera`: publish frames from a webcam or a video file (OpenCV `VideoCapture`) with their camera info.
+
+Keys: `camera/image` (`sensor_msgs/Image`, mono8 or bgr8) and `camera/info` (`sensor_msgs/CameraInfo`, with every
+frame), both stamped with the wall-clock time at which the frame was read (ns since the Unix epoch).
+
+Calibration (`--calibration FILE`): an OpenCV FileStorage file (YAML/XML/JSON, e.g. written by
+`cv2.FileStorage` or the ROS `camera_calibration` YAML) or a plain JSON object, with the 3×3 camera matrix under
+`camera_matrix` or `K`, distortion coefficients under `distortion_coefficients`, `dist_coeffs` or `D` (optional) and
+the size under `image_width`/`image_height` or `width`/`height`. Matrices may be `opencv-matrix` nodes, `{rows,
+cols, data}` maps or (nested) lists. Pixels follow OpenCV (0-based pixel centres). Without a calibration file,
+`--focal F` describes the paper's coarse calibration: fx = fy = F, principal point at the image centre.
+
+The servo engine models undistorted pinhole images, so frames with non-zero distortion are rectified with the same
+K (`cv2.initUndistortRectifyMap`) and published with zero distortion, unless `--raw` is given.
+
+Rate: a video file is replayed at `--fps`, or at the rate stored in the file (30 Hz when it has none); a device is
+read as fast as it delivers frames, or throttled to `--fps`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from ddvs_service.protocol import Keys
+
+log = logging.getLogger(__name__)
+ENCODINGS = ("mono8", "bgr8")
+CAMERA_FRAME_ID = "camera"
+DEFAULT_FILE_FPS = 30.0
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Camera matrix `K` (3×3, pixels), distortion coefficients `D` (OpenCV order k1 k2 p1 p2 [k3 …]), image size."""
+
+    K: NDArray[np.float64]
+    D: NDArray[np.float64]
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if self.K.shape != (3, 3) or self.K[2, 2] != 1.0 or self.K[1, 0] != 0.0 or self.K[2, 0] != 0.0:
+            raise ValueError(f"camera matrix must be 3×3 upper triangular with K[2,2] = 1, got {self.K.tolist()}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}×{self.height}")
+
+    @property
+    def distorted(self) -> bool:
+        return bool(np.any(self.D != 0.0))
+
+
+def _first(mapping: dict, names: tuple[str, ...], path: Path, required: bool = True):
+    for name in names:
+        if name in mapping:
+            return mapping[name]
+    if required:
+        raise ValueError(f"calibration {path} has none of the keys {names}")
+    return None
+
+
+def _as_matrix(value, what: str, path: Path) -> NDArray[np.float64]:
+    if isinstance(value, dict):  # {rows, cols, data} (ROS YAML, OpenCV JSON)
+        value = value.get("data")
+    if value is None:
+        raise ValueError(f"calibration {path}: {what} has no data")
+    return np.asarray(value, dtype=np.float64)
+
+
+def _read_filestorage(path: Path) -> dict:
+    """The top-level entries of an OpenCV FileStorage file as Python values (matrices as arrays)."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise ValueError(f"OpenCV cannot read the calibration file {path}")
+    try:
+        entries = {}
+        root = fs.root()
+        for key in root.keys():  # noqa: SIM118 (a cv2.FileNode is not iterable)
+            node = root.getNode(key)
+            if node.isInt() or node.isReal():
+                entries[key] = node.real()
+            elif node.isString():
+                entries[key] = node.string()
+            elif node.isMap() and not node.getNode("data").empty() and node.getNode("dt").empty():
+                data = node.getNode("data")
+                entries[key] = {"data": [data.at(i).real() for i in range(data.size())]}
+            elif node.isSeq():
+                entries[key] = [node.at(i).real() for i in range(node.size())]
+            else:
+                entries[key] = node.mat()
+        return entries
+    finally:
+        fs.release()
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read a calibration file (see the module docstring for the accepted layouts)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"calibration file {path} does not exist")
+    entries: dict
+    try:
+        entries = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        entries = _read_filestorage(path)
+    if not isinstance(entries, dict):
+        raise ValueError(f"calibration {path} is not an object of named entries")
+    K = _as_matrix(_first(entries, ("camera_matrix", "K"), path), "camera matrix", path).reshape(3, 3)
+    D_value = _first(entries, ("distortion_coefficients", "dist_coeffs", "D"), path, required=False)
+    D = np.zeros(5) if D_value is None else _as_matrix(D_value, "distortion", path).reshape(-1)
+    width = int(_first(entries, ("image_width", "width"), path))
+    height = int(_first(entries, ("image_height", "height"), path))
+    return Calibration(K, D, width, height)
+
+
+class CameraPublisher:
+    """Publishes frames (grey or BGR uint8, the calibration's size) with their camera info on `session`."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, calibration: Calibration, encoding: str = "mono8",
+                 rectify: bool = True) -> None:
+        import cv2
+
+        from ddvs_service.protocol import declare_publisher
+
+        if encoding not in ENCODINGS:
+            raise ValueError(f"encoding {encoding!r} not supported; expected one of {ENCODINGS}")
+        self.calibration, self.encoding = calibration, encoding
+        size = (calibration.width, calibration.height)
+        self._maps = (cv2.initUndistortRectifyMap(calibration.K, calibration.D, None, calibration.K, size,
+                                                  cv2.CV_16SC2) if rectify and calibration.distorted else None)
+        self._published_D = np.zeros(5) if self._maps is not None else calibration.D
+        self._image = declare_publisher(session, keys, "camera_image")
+        self._info = declare_publisher(session, keys, "camera_info")
+        self.published = 0
+
+    def close(self) -> None:
+        self._image.undeclare()
+        self._info.undeclare()
+
+    def publish(self, frame: NDArray[np.uint8], stamp_ns: int) -> None:
+        """Convert (grey/BGR), rectify when needed, and publish `frame` with camera info stamped `stamp_ns`."""
+        import cv2
+
+        from ddvs_service.protocol import (
+            CameraInfo,
+            Header,
+            Time,
+            encode_camera_info,
+            encode_image,
+            image_from_array,
+        )
+
+        cal = self.calibration
+        if frame.shape[:2] != (cal.height, cal.width):
+            raise ValueError(f"frame is {frame.shape[1]}×{frame.shape[0]}; the calibration is for "
+                             f"{cal.width}×{cal.height}")
+        if self.encoding == "mono8" and frame.ndim == 3:
+            frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        elif self.encoding == "bgr8" and frame.ndim == 2:
+            frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+        if self._maps is not None:
+            frame = cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+        header = Header(Time.from_ns(stamp_ns), CAMERA_FRAME_ID)
+        info = CameraInfo(header=header, height=cal.height, width=cal.width, d=self._published_D,
+                          k=cal.K.reshape(-1), p=np.hstack([cal.K, np.zeros((3, 1))]).reshape(-1))
+        self._info.put(encode_camera_info(info))
+        self._image.put(encode_image(image_from_array(np.ascontiguousarray(frame), self.encoding, header)))
+        self.published += 1
+
+
+def stream(capture, publisher: CameraPublisher, fps: float | None, stop: threading.Event,
+           max_frames: int | None = None, loop: bool = False) -> int:
+    """Read frames from an opened `cv2.VideoCapture` and publish them, paced at `fps` (None: as fast as the source
+    delivers), until the source ends (or forever with `loop`, rewinding a file), `stop` is set or `max_frames`
+    were published. Returns the number of frames published."""
+    import cv2
+
+    period = 0.0 if fps is None else 1.0 / fps
+    start = time.monotonic()
+    count = 0
+    while not stop.is_set() and (max_frames is None or count < max_frames):
+        ok, frame = capture.read()
+        if not ok:
+            if loop and capture.set(cv2.CAP_PROP_POS_FRAMES, 0):
+                ok, frame = capture.read()
+            if not ok:
+                break
+        if period:
+            wait = start + count * period - time.monotonic()
+            if wait > 0 and stop.wait(wait):
+                break
+        publisher.publish(frame, time.time_ns())
+        count += 1
+    return count
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ddvs_service.protocol import add_zenoh_arguments
+
+    parser.add_argument("source", help="webcam device index (e.g. 0) or video file path")
+    calibration = parser.add_mutually_exclusive_group(required=True)
+    calibration.add_argument("--calibration", type=Path, help="calibration file (OpenCV YAML/XML/JSON or JSON)")
+    calibration.add_argument("--focal", type=float,
+                             help="coarse calibration: fx = fy = FOCAL px, principal point at the image centre")
+    parser.add_argument("--fps", type=float, default=None, help="publishing rate (default: the source's)")
+    parser.add_argument("--encoding", choices=ENCODINGS, default="mono8", help="published encoding (default mono8)")
+    parser.add_argument("--raw", action="store_true", help="publish distorted frames as read (no rectification)")
+    parser.add_argument("--loop", action="store_true", help="replay a video file from the start when it ends")
+    parser.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+    parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
+    parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
+    add_zenoh_arguments(parser)
+
+
+def _open_capture(source: str):
+    import cv2
+
+    capture = cv2.VideoCapture(int(source)) if source.isdigit() else cv2.VideoCapture(source)
+    if not capture.isOpened():
+        raise SystemExit(f"ddvs camera: cannot open {'device' if source.isdigit() else 'video file'} {source!r}")
+    return capture
+
+
+def run(args: argparse.Namespace) -> int:
+    import signal
+
+    import cv2
+
+    from ddvs_service.protocol import Keys, open_session, session_config_from_args
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    capture = _open_capture(args.source)
+    if args.calibration is not None:
+        calibration = load_calibration(args.calibration)
+    else:
+        w, h = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        K = np.array([[args.focal, 0.0, (w - 1) / 2.0], [0.0, args.focal, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+        calibration = Calibration(K, np.zeros(5), w, h)
+    fps = args.fps
+    if fps is None and not args.source.isdigit():
+        fps = capture.get(cv2.CAP_PROP_FPS) or DEFAULT_FILE_FPS
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with open_session(session_config_from_args(args)) as session:
+        publisher = CameraPublisher(session, Keys(args.prefix, args.robot), calibration, args.encoding,
+                                    rectify=not args.raw)
+        try:
+            count = stream(capture, publisher, fps, stop, args.frames, args.loop)
+        finally:
+            publisher.close()
+            capture.release()
+    log.info("published %d frames", count)
+    return 0

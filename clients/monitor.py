@@ -1,0 +1,158 @@
+"""`ddvs monitor`: live terminal view of one servo (plain ANSI redraw), or one JSON snapshot with `--once`.
+
+Shown: the servo state (from `servo/status`, or `servo/state` before any status), the control error vector ε̄ and its
+norm (eq. 16, or 13 for DVS), the twist (m/s, rad/s, camera frame), arrival rates over the last `--window` seconds
+of camera frames, twists and status messages (Hz), the service's per-frame latency breakdown (ms) and counters.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from ddvs_service.protocol import Keys
+
+RATE_STREAMS = {"frames": "camera_image", "twists": "servo_twist", "status": "servo_status"}
+CLEAR = "\x1b[H\x1b[2J"
+
+
+class Monitor:
+    """Collects the newest status and state and the arrival times of frames, twists and status (Zenoh callbacks
+    only store; `snapshot` computes)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, window: float = 2.0) -> None:
+        if window <= 0:
+            raise ValueError(f"window must be > 0 seconds, got {window}")
+        self.window = window
+        self._lock = threading.Lock()
+        self._arrivals: dict[str, collections.deque[float]] = {name: collections.deque() for name in RATE_STREAMS}
+        self._status: dict[str, Any] | None = None
+        self._state: dict[str, Any] | None = None
+        self.status_received = threading.Event()
+        self._subscribers = [session.declare_subscriber(keys.key(key), self._on_arrival(name))
+                             for name, key in RATE_STREAMS.items()]
+        self._subscribers.append(session.declare_subscriber(keys.servo_state, self._on_state))
+
+    def _on_arrival(self, name: str):
+        def callback(sample: zenoh.Sample) -> None:
+            now = time.monotonic()
+            payload = sample.payload.to_bytes() if name == "status" else None
+            with self._lock:
+                self._arrivals[name].append(now)
+                if payload is not None:
+                    try:
+                        self._status = json.loads(payload)
+                    except ValueError:
+                        return
+            if payload is not None:
+                self.status_received.set()
+
+        return callback
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        try:
+            state = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        with self._lock:
+            self._state = state
+
+    def close(self) -> None:
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+        self._subscribers.clear()
+
+    def snapshot(self) -> dict[str, Any]:
+        """JSON-ready view: state, error, twist, rates (Hz over the window), latency (ms), counters, message."""
+        now = time.monotonic()
+        with self._lock:
+            rates = {}
+            for name, arrivals in self._arrivals.items():
+                while arrivals and arrivals[0] < now - self.window:
+                    arrivals.popleft()
+                rates[name] = round(len(arrivals) / self.window, 2)
+            status, state = self._status, self._state
+        snap: dict[str, Any] = {"state": None, "has_reference": None, "error_norm": None, "error": None,
+                                "twist": None, "rates_hz": rates, "latency_ms": None, "counters": None,
+                                "message": ""}
+        if state is not None:
+            snap.update(state=state.get("state"), has_reference=state.get("has_reference"),
+                        message=state.get("message", ""))
+        if status is not None:
+            snap.update(state=status.get("state"), error_norm=status.get("error_norm"), error=status.get("error"),
+                        twist=status.get("twist"), latency_ms=status.get("latency_ms"),
+                        counters=status.get("counters"), message=status.get("message") or snap["message"])
+        return snap
+
+
+def _vector(values: list[float] | None, digits: int = 5) -> str:
+    return "—" if values is None else "[" + ", ".join(f"{v:+.{digits}f}" for v in values) + "]"
+
+
+def render(snap: dict[str, Any], title: str) -> str:
+    """The terminal view of a `Monitor.snapshot` (plain text lines)."""
+    rates = snap["rates_hz"]
+    latency = snap["latency_ms"] or {}
+    counters = snap["counters"] or {}
+    norm = snap["error_norm"]
+    lines = [
+        f"ddvs monitor — {title}    {time.strftime('%H:%M:%S')}",
+        "",
+        f"state        {snap['state'] or 'no service seen'}"
+        + ("" if snap["has_reference"] is None else f"   (reference: {'yes' if snap['has_reference'] else 'no'})"),
+        f"error norm   {'—' if norm is None else f'{norm:.3e}'}",
+        f"error        {_vector(snap['error'])}",
+        f"twist        {_vector(snap['twist'])}   (m/s, rad/s, camera frame)",
+        f"rates        frames {rates['frames']:6.1f} Hz   twists {rates['twists']:6.1f} Hz   "
+        f"status {rates['status']:6.1f} Hz",
+        "latency ms   " + ("—" if not latency else "   ".join(f"{k} {v:.2f}" for k, v in latency.items())),
+        "counters     " + ("—" if not counters else "   ".join(f"{k} {v}" for k, v in counters.items())),
+        f"message      {snap['message'] or ''}",
+    ]
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ddvs_service.protocol import add_zenoh_arguments
+
+    parser.add_argument("--once", action="store_true",
+                        help="wait for a status, measure rates over --window, print one JSON snapshot and exit")
+    parser.add_argument("--window", type=float, default=2.0, help="seconds over which rates are counted (default 2)")
+    parser.add_argument("--interval", type=float, default=0.5, help="seconds between redraws (default 0.5)")
+    parser.add_argument("--timeout", type=float, default=5.0,
+                        help="--once: seconds to wait for a first status before giving up (exit 2; default 5)")
+    parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
+    parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
+    add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ddvs_service.protocol import Keys, open_session, session_config_from_args
+
+    keys = Keys(args.prefix, args.robot)
+    with open_session(session_config_from_args(args)) as session:
+        monitor = Monitor(session, keys, args.window)
+        try:
+            if args.once:
+                if not monitor.status_received.wait(args.timeout):
+                    print(f"ddvs monitor: no status on {keys.servo_status} within {args.timeout} s", file=sys.stderr)
+                    return 2
+                time.sleep(args.window)
+                print(json.dumps(monitor.snapshot(), indent=2))
+                return 0
+            while True:
+                sys.stdout.write(CLEAR + render(monitor.snapshot(), keys.base) + "\n")
+                sys.stdout.flush()
+                time.sleep(args.interval)
+        except KeyboardInterrupt:
+            return 0
+        finally:
+            monitor.close()
