@@ -1,0 +1,538 @@
+"""General (non-planar) direct registration: `G`, the epipole `e` and the parallax field ρ* of eq. (2)
+`p ∝ G p* + ρ*(p*) e`, with the gains `S` and bias `β` of (4), minimising the robust cost (5).
+
+Parametrisation (chosen from shared/notes/plane-parallax-estimation.md and the measurements in the report):
+ρ* is a smooth polynomial field over the ROI (`general_basis.ParallaxBasis`, biquadratic by default: 6 coefficients),
+estimated once, on the first frame (the largest displacement), then held fixed in the reference frame; each later
+frame estimates only `G`, `e`, `S`, `β` (8 + 3 + gains + 1 unknowns). Re-estimating ρ* every frame drifts into a
+second, self-consistent wrong solution near the equilibrium where `e → 0` (notes, warning 2).
+
+Gauge (the freedoms of (2), fixed explicitly):
+- plane: ρ* has zero mean and zero first moments over the ROI (by construction of the basis), which picks the
+  reference plane;
+- scale: `(e, ρ*) ~ (s e, ρ*/s)` is fixed on the frame where ρ* is estimated by `‖N e‖ = 1`, `N` the ROI
+  normalisation `q = (p − c)/s` (c the ROI centre, s half its larger side, pixels): ρ* is then a dimensionless
+  parallax in units of that frame's epipole. During that estimation the update of `e` is restricted to the tangent
+  space of the constraint and `(e, c)` are rescaled exactly after each step (the warp is unchanged). Later frames
+  need no constraint: with ρ* fixed `e` shrinks smoothly to 0 at the equilibrium.
+- `det G = 1` (SL(3)); `e` carries the same scale as `G`.
+The control error (16) uses the product `ρ*(m*) e'`, invariant to the scale gauge; the plane gauge changes
+`ε̄_v` by a factor `det(·)^(1/3)` that tends to 1 at the equilibrium (EQUATIONS.md).
+
+Cold start: several starting epipole directions (a hemisphere of `N e`; `e` and `−e` are the same start), each
+refined with ρ* free, and the lowest robust cost wins; `margin` is the relative cost gap to the best *different*
+epipole direction, which the notes measured at 9 % at the paper's start and < 0.1 % near the equilibrium.
+
+Update at pyramid level l (level pixels, `D_l` of `images`): `G_l ← M G_l`, `e_l ← M e_l + N⁻¹ δe'`,
+`M = N⁻¹ exp(Σ xᵢ Aᵢ) N` (left increment, Jacobian from `kernels.general_step`), `c ← c + δc`, `S ← S + δS`,
+`β ← β + δβ`; then `(G, e) ← (G, e) / det(G)^(1/3)`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ddvs_service.lie import sl3_exp
+from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
+from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.images import F32, build_pyramid, checked_grey
+from ddvs_service.registration.planar import MAD_TO_SIGMA, PlanarRegistration, Roi
+
+F64 = NDArray[np.float64]
+DEGENERATE_RCOND = 1e-9
+# Starting directions of N e (normalised, one per ± pair): lateral, diagonal, forward and oblique translations.
+START_DIRECTIONS = np.array(
+    [[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1], [-1, 0, 1], [0, 1, 1], [0, -1, 1]],
+    dtype=np.float64,
+)
+
+FLAG_NO_PARALLAX = "no_parallax"  # parallax below detection: planar target or too little translation; ρ* := 0
+FLAG_AMBIGUOUS = "ambiguous_parallax"  # a different parallax field fits almost as well
+FLAG_LOW_TEXTURE = "low_texture"  # degenerate normal equations
+FLAG_OCCLUSION = "occlusion"  # too few inliers / too little of the ROI visible
+FLAG_LOST = "lost"  # the tracker lost the target and will re-acquire on the next frame
+FLAG_DIVERGED = "diverged"
+
+
+@dataclass(frozen=True)
+class GeneralConfig:
+    """Settings of the general registration.
+
+    - `base`: the planar engine's settings (pyramid, iterations, gain grid, robust loss, tolerances), shared.
+    - `rho_degree`: 2 (biquadratic, 6 coefficients) or 3 (bicubic, 13).
+    - `estimate_levels`: pyramid levels (finest first) on which ρ* is estimated from the planar solution.
+    - `min_parallax_px`: RMS parallax displacement over the ROI below which ρ* is declared unobserved (set to 0).
+    - `min_parallax_snr`: the parallax must also exceed this many standard errors.
+    - `min_margin`: relative cost gap to a different parallax solution below which the result is flagged ambiguous.
+    - `distinct_epipole_deg`: two solutions whose epipole directions differ by more than this are different.
+    - `lost_after`: consecutive failed frames after which the tracker declares LOST and re-acquires.
+    """
+
+    base: RegistrationConfig = field(default_factory=RegistrationConfig)
+    rho_degree: int = 2
+    estimate_levels: int = 2
+    min_parallax_px: float = 0.05
+    min_parallax_snr: float = 10.0
+    min_margin: float = 0.002
+    distinct_epipole_deg: float = 20.0
+    lost_after: int = 3
+
+    def __post_init__(self) -> None:
+        if self.rho_degree not in (2, 3):
+            raise ValueError(f"rho_degree must be 2 or 3, got {self.rho_degree}")
+        if self.estimate_levels < 1:
+            raise ValueError(f"estimate_levels must be ≥ 1, got {self.estimate_levels}")
+        if not self.min_parallax_px >= 0.0 or not self.min_parallax_snr >= 0.0:
+            raise ValueError("min_parallax_px and min_parallax_snr must be ≥ 0")
+        if self.lost_after < 1:
+            raise ValueError(f"lost_after must be ≥ 1, got {self.lost_after}")
+
+
+@dataclass
+class GeneralResult:
+    """Estimate of eq. (2)+(4) for one frame.
+
+    - `G` (3×3, det 1) and `e` (3, same scale as `G`): reference pixels → current pixels, `p ∝ G p* + ρ*(p*) e`.
+    - `rho_coeffs`: ρ* coefficients in `basis` (gauge of the module docstring); `rho_at(p)` evaluates ρ*.
+    - `rho_information`: Fisher information of `rho_coeffs` given `e` (accumulated over the frames by the tracker),
+      `(JᵀWJ)/σ²` with the other unknowns marginalised; `parallax_px`: RMS over the ROI of the displacement due to
+      `ρ* e` in this frame; `margin`: relative cost gap to the best different parallax field (estimation frames).
+    - `S`, `beta`, `iterations`, `residual_rms`, `inlier_ratio`, `scale` as the planar `RegistrationResult`.
+    - `converged`, `reason` and `flags` (`FLAG_*`): what went wrong, never silent.
+    """
+
+    G: F64
+    e: F64
+    rho_coeffs: F64
+    basis: ParallaxBasis
+    S: F64
+    beta: float
+    rho_information: F64
+    parallax_px: float = 0.0
+    margin: float = float("nan")
+    iterations: list[int] = field(default_factory=list)
+    residual_rms: float = float("nan")
+    inlier_ratio: float = 0.0
+    scale: float = float("nan")
+    converged: bool = False
+    reason: str = ""
+    flags: list[str] = field(default_factory=list)
+
+    @property
+    def H(self) -> F64:
+        """`G` normalised so that `H[2, 2] = 1`."""
+        return self.G / self.G[2, 2]
+
+    def rho_at(self, p: ArrayLike) -> float:
+        """ρ* at one reference pixel `p = (u, v)` (e.g. the control point), gauge units."""
+        return float(self.basis.rho(self.rho_coeffs, np.asarray(p, dtype=np.float64).reshape(1, 2))[0])
+
+    def warp(self, p: ArrayLike) -> F64:
+        """Current pixels (N × 2) of reference pixels `p` (N × 2) under eq. (2)."""
+        return warp_points(self.G, self.e, self.basis, self.rho_coeffs, p)
+
+    def rho_std(self) -> F64:
+        """Standard errors of `rho_coeffs` (inf where the information is singular)."""
+        return _std_from_information(self.rho_information)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Plain-JSON view of the estimate and its status."""
+        return {
+            "H": self.H.tolist(), "G": self.G.tolist(), "e": self.e.tolist(), "rho_coeffs": self.rho_coeffs.tolist(),
+            "rho_degree": self.basis.degree, "rho_std": [float(x) for x in self.rho_std()],
+            "parallax_px": float(self.parallax_px), "margin": float(self.margin),
+            "S": np.asarray(self.S).tolist(), "beta": float(self.beta), "iterations": [int(i) for i in self.iterations],
+            "residual_rms": float(self.residual_rms), "inlier_ratio": float(self.inlier_ratio),
+            "scale": float(self.scale), "converged": bool(self.converged), "reason": self.reason, "flags": self.flags,
+        }
+
+
+def _std_from_information(info: F64) -> F64:
+    w, V = np.linalg.eigh(info)
+    inv_w = np.where(w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300), 1.0 / np.maximum(w, 1e-300), np.inf)
+    with np.errstate(invalid="ignore"):
+        var = (V**2) @ inv_w
+    return np.sqrt(np.where(np.isnan(var), np.inf, var))
+
+
+def warp_points(G: F64, e: F64, basis: ParallaxBasis, coeffs: F64, p: ArrayLike) -> F64:
+    """`π(G p* + ρ*(p*) e)` for reference pixels `p` (N × 2), full resolution."""
+    q = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+    P = np.c_[q, np.ones(len(q))] @ G.T + np.outer(basis.rho(coeffs, q), e)
+    return P[:, :2] / P[:, 2:3]
+
+
+@dataclass
+class _State:
+    G: F64
+    e: F64
+    c: F64
+    gains: F64
+    beta: float
+    scale: float | None
+    residual_rms: float = float("nan")
+    inlier_ratio: float = 0.0
+    cost: float = float("inf")
+
+
+def _normalise(state: _State) -> None:
+    """`det G = 1` with `e` on the same scale (the warp (2) is unchanged)."""
+    k = float(np.cbrt(np.linalg.det(state.G)))
+    state.G = state.G / k
+    state.e = state.e / k
+
+
+class GeneralRegistration:
+    """The reference side prepared once (pyramid, ROI levels, parallax basis, buffers); `estimate` finds ρ* from
+    scratch, `track` registers a frame with ρ* held fixed."""
+
+    def __init__(
+        self,
+        reference: ArrayLike,
+        roi: Roi | None = None,
+        mask: ArrayLike | None = None,
+        config: GeneralConfig = GeneralConfig(),
+    ) -> None:
+        from kernels.general_step import params_size
+
+        self.config = config
+        self.planar = PlanarRegistration(reference, roi=roi, mask=mask, config=config.base)
+        self.roi = self.planar.roi
+        self.levels = self.planar.levels
+        self.reference = self.planar.reference
+        self.grid = self.planar.grid
+        self.basis = ParallaxBasis.over(self.roi, config.rho_degree)
+        self._params = np.zeros(params_size(self.basis.size), dtype=np.float32)
+        self._work: dict[int, NDArray[np.float32]] = {}
+        x, y, w, h = self.roi
+        u, v = np.meshgrid(np.linspace(x, x + w - 1, 16), np.linspace(y, y + h - 1, 12))
+        self._probe = np.c_[u.ravel(), v.ravel()]  # points where steps and parallax are measured
+        self._probe_phi = self.basis.values(self._probe)
+        self.N0 = self._norm_matrix(self.levels[0].norm)
+
+    @staticmethod
+    def _norm_matrix(norm: tuple[float, float, float]) -> F64:
+        cx, cy, s = norm
+        return np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+
+    # ----------------------------------------------------------------------------------------------- public
+
+    def estimate(self, current: F32, G0: F64 | None) -> GeneralResult:
+        """ρ* from scratch: planar registration from `G0` (its own cold start when None), then every starting
+        epipole direction refined with ρ* free; the lowest cost wins (module docstring)."""
+        planar = self.planar.run(current, G0=G0)
+        if not planar.converged or not np.all(np.isfinite(planar.G)):
+            return self._failed(_State(planar.G if np.all(np.isfinite(planar.G)) else np.eye(3), np.zeros(3),
+                                       np.zeros(self.basis.size), planar.S, planar.beta, None),
+                                f"planar stage failed: {planar.reason}", _flags_for(planar.reason))
+        pyramid = build_pyramid(current, len(self.levels))
+        levels = list(reversed(self.levels[: self.config.estimate_levels]))
+        solutions: list[tuple[_State, list[int], bool, str]] = []
+        for direction in START_DIRECTIONS:
+            state = _State(planar.G.copy(), np.linalg.solve(self.N0, direction / np.linalg.norm(direction)),
+                           np.zeros(self.basis.size), planar.S.copy(), planar.beta, planar.scale)
+            iterations, converged, reason, failed = [], False, "", False
+            for level in levels:
+                n1, _, reason, failed = self._solve(level, pyramid, state, free_e=False, free_rho=True)
+                if failed:
+                    break
+                n2, converged, reason, failed = self._solve(level, pyramid, state, free_e=True, free_rho=True)
+                iterations.append(n1 + n2)
+                if failed:
+                    break
+            if not failed:
+                solutions.append((state, iterations, converged, reason))
+        if not solutions:
+            return self._failed(_State(planar.G, np.zeros(3), np.zeros(self.basis.size), planar.S, planar.beta,
+                                       planar.scale), "every parallax start failed", [FLAG_DIVERGED])
+        solutions.sort(key=lambda s: s[0].cost)
+        best, iterations, converged, reason = solutions[0]
+        rival = next((s for s, *_ in solutions[1:] if self._epipole_angle(best, s) > self.config.distinct_epipole_deg),
+                     None)
+        margin = (rival.cost - best.cost) / best.cost if rival is not None else float("inf")
+        info = self._information(pyramid, best)
+        result = self._result(best, [*planar.iterations, *iterations], converged, reason, info)
+        result.margin = margin
+        self._check_parallax(result, best)
+        if margin < self.config.min_margin and FLAG_NO_PARALLAX not in result.flags:
+            result.flags.append(FLAG_AMBIGUOUS)
+        return result
+
+    def track(
+        self, current: F32, G0: F64, e0: F64, rho: F64, gains0: ArrayLike | float = 1.0, beta0: float = 0.0,
+        scale0: float | None = None, information: bool = True,
+    ) -> GeneralResult:
+        """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
+        when ρ* is 0 (planar). `information`: also evaluate the information on ρ* at the solution (one more pass)."""
+        pyramid = build_pyramid(current, len(self.levels))
+        gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
+        state = _State(np.asarray(G0, dtype=np.float64).copy(), np.asarray(e0, dtype=np.float64).copy(),
+                       np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0)
+        _normalise(state)
+        free_e = bool(np.any(state.c != 0.0))
+        iterations: list[int] = []
+        converged, reason = False, ""
+        for level in reversed(self.levels):
+            n, converged, reason, failed = self._solve(level, pyramid, state, free_e=free_e, free_rho=False)
+            iterations.append(n)
+            if failed:
+                return self._failed(state, reason, _flags_for(reason), iterations)
+        info = self._information(pyramid, state) if information and free_e else np.zeros((self.basis.size,) * 2)
+        return self._result(state, iterations, converged, reason, info)
+
+    # --------------------------------------------------------------------------------------------- internals
+
+    def _fill(self, level: Any, G_l: F64, e_l: F64, state: _State) -> None:
+        from kernels import general_step as k
+
+        p = self._params
+        p[k.PARAMS_G : k.PARAMS_G + 9] = G_l.reshape(9)
+        p[k.PARAMS_E : k.PARAMS_E + 3] = e_l
+        p[k.PARAMS_NORM : k.PARAMS_NORM + 3] = level.norm
+        p[k.PARAMS_BNORM : k.PARAMS_BNORM + 3] = self.basis.level_norm(level.D)
+        p[k.PARAMS_ROI : k.PARAMS_ROI + 4] = level.bounds
+        p[k.PARAMS_SPAN : k.PARAMS_SPAN + 4] = level.span
+        p[k.PARAMS_BETA] = state.beta
+        p[k.PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
+        p[k.PARAMS_ROBUST] = 0 if state.scale is None else ROBUST_CODES[self.config.base.robust]
+        p[k.PARAMS_BANDS] = self.config.base.bands
+        p[k.PARAMS_GAINS : k.PARAMS_GAINS + state.gains.size] = state.gains.reshape(-1)
+        n_mono = (self.basis.degree + 1) ** 2
+        p[k.PARAMS_RHO : k.PARAMS_RHO + n_mono] = self.basis.monomial_coefficients(state.c)
+        for i, row in enumerate(self.basis.B):
+            p[k.PARAMS_BASIS + i * k.MAX_MONOMIALS : k.PARAMS_BASIS + i * k.MAX_MONOMIALS + n_mono] = row
+
+    def _normal_equations(
+        self, level: Any, ref: F32, cur: F32, state: _State, with_rho: bool
+    ) -> tuple[F64, F64, NDArray[np.float64]]:
+        """One kernel launch at the state: (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr², median |r|])."""
+        from kernels.general_step import general_step, n_acc, n_columns, work_size
+
+        n = n_columns(self.basis.size, with_rho, *self.grid)
+        if n not in self._work:
+            self._work[n] = np.zeros(work_size(n), dtype=np.float32)
+        work = self._work[n]
+        D = level.D
+        self._fill(level, D @ state.G @ np.linalg.inv(D), D @ state.e, state)
+        general_step(ref, cur, self._params, work, self.basis.degree, self.basis.size, with_rho, *self.grid)
+        acc = work[: n_acc(n)].astype(np.float64)
+        nt = n * (n + 1) // 2
+        H = np.zeros((n, n))
+        H[np.triu_indices(n)] = acc[:nt]
+        return H + np.triu(H, 1).T, acc[nt : nt + n], acc[nt + n :]
+
+    def _solve(
+        self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool
+    ) -> tuple[int, bool, str, bool]:
+        """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure)."""
+        cfg = self.config.base
+        ref, cur = self.reference[level.index], pyramid[level.index]
+        nr = self.basis.size if free_rho else 0
+        ng = self.grid[0] * self.grid[1]
+        D, D_inv = level.D, np.linalg.inv(level.D)
+        N = level.N
+        N_inv = np.linalg.inv(N)
+        e_sl = slice(8, 11)
+        for it in range(1, cfg.max_iterations + 1):
+            H, g, stats = self._normal_equations(level, ref, cur, state, with_rho=free_rho)
+            n_valid, n_inliers, sum_r2, median = stats
+            if n_valid < cfg.min_valid_ratio * level.n_pixels:
+                return it, False, (f"diverged at level {level.index}: only {n_valid / level.n_pixels:.0%} of the ROI "
+                                   f"maps inside the current image (min_valid_ratio {cfg.min_valid_ratio:.0%})"), True
+            state.residual_rms = math.sqrt(sum_r2 / n_valid)
+            state.cost = sum_r2 / n_valid
+            state.inlier_ratio = min(1.0, n_inliers / level.n_pixels) if state.scale is not None else 1.0
+            state.scale = max(MAD_TO_SIGMA * median, cfg.scale_floor)
+            T = np.eye(len(g))
+            if not free_e:
+                T = np.delete(T, [8, 9, 10], axis=1)
+            elif free_rho:  # scale gauge: δe' orthogonal to N e (module docstring)
+                d = N @ D @ state.e
+                basis = np.linalg.svd(d.reshape(1, 3))[2][1:].T  # 3×2, orthonormal complement of d
+                E = np.zeros((len(g), 2))
+                E[e_sl] = basis
+                T = np.hstack([T[:, :8], E, T[:, 11:]])
+            Hr = T.T @ H @ T
+            gr = T.T @ g
+            dg = np.diag(Hr)
+            if not np.all(dg > 0):
+                return it, False, f"degenerate normal equations at level {level.index} (textureless ROI?)", True
+            Hn = Hr / np.sqrt(np.outer(dg, dg))
+            eig = np.linalg.eigvalsh(Hn)
+            if not eig[0] > DEGENERATE_RCOND * eig[-1]:
+                return it, False, (f"degenerate normal equations at level {level.index} (textureless ROI?): "
+                                   f"reciprocal condition {eig[0] / eig[-1]:.1e}"), True
+            delta = T @ np.linalg.solve(Hr, -gr)
+            if not np.all(np.isfinite(delta)):
+                return it, False, f"non-finite update at level {level.index}", True
+            before = warp_points(state.G, state.e, self.basis, state.c, self._probe)
+            new = self._apply(state, delta, D, D_inv, N, N_inv, nr, ng, 1.0)
+            step_px = float(np.max(np.abs(warp_points(new.G, new.e, self.basis, new.c, self._probe) - before)))
+            step = step_px * D[0, 0]
+            limit = cfg.max_step_fraction * level.size
+            if not step <= limit:
+                factor = limit / step if math.isfinite(step) else 0.0
+                new = self._apply(state, delta, D, D_inv, N, N_inv, nr, ng, factor)
+            state.G, state.e, state.c, state.gains, state.beta = new.G, new.e, new.c, new.gains, new.beta
+            if free_rho and free_e:
+                self._fix_scale(state)
+            if step < cfg.step_tolerance_px:
+                return it, True, f"converged: last step {step:.1e} px < {cfg.step_tolerance_px:g} px", False
+        return cfg.max_iterations, False, f"max_iterations ({cfg.max_iterations}) reached at level {level.index}", False
+
+    def _apply(
+        self, state: _State, delta: F64, D: F64, D_inv: F64, N: F64, N_inv: F64, nr: int, ng: int, factor: float
+    ) -> _State:
+        """The state after the update `factor · delta` (module docstring), normalised to det G = 1."""
+        d = factor * delta
+        M = N_inv @ sl3_exp(d[:8]) @ N
+        G_l = M @ D @ state.G @ D_inv
+        e_l = M @ D @ state.e + N_inv @ d[8:11]
+        c = state.c + d[11 : 11 + nr] if nr else state.c.copy()
+        off = 11 + nr
+        new = _State(D_inv @ G_l @ D, D_inv @ e_l, c, state.gains + d[off : off + ng].reshape(self.grid),
+                     state.beta + float(d[off + ng]), state.scale)
+        _normalise(new)
+        return new
+
+    def _fix_scale(self, state: _State) -> None:
+        """`‖N₀ e‖ = 1` by the exact rescaling `(e, c) → (e/k, k c)`."""
+        k = float(np.linalg.norm(self.N0 @ state.e))
+        if k > 0.0:
+            state.e = state.e / k
+            state.c = state.c * k
+
+    def _information(self, pyramid: list[F32], state: _State) -> F64:
+        """Information on the ρ* coefficients given `e` at the finest level: Schur complement of JᵀWJ over the
+        other unknowns except `e`, divided by σ²."""
+        level = self.levels[0]
+        H, _, _ = self._normal_equations(level, self.reference[0], pyramid[0], state, with_rho=True)
+        nr = self.basis.size
+        rho = np.arange(11, 11 + nr)
+        other = np.r_[np.arange(8), np.arange(11 + nr, H.shape[0])]
+        Hoo = H[np.ix_(other, other)]
+        Hro = H[np.ix_(rho, other)]
+        try:
+            schur = H[np.ix_(rho, rho)] - Hro @ np.linalg.solve(Hoo, Hro.T)
+        except np.linalg.LinAlgError:
+            return np.zeros((nr, nr))
+        sigma = state.scale if state.scale else 1.0
+        return 0.5 * (schur + schur.T) / sigma**2
+
+    def _parallax_px(self, G: F64, e: F64, c: F64) -> F64:
+        """Displacement (px) due to `ρ* e` at the probe points."""
+        planar = warp_points(G, np.zeros(3), self.basis, c, self._probe)
+        return np.linalg.norm(warp_points(G, e, self.basis, c, self._probe) - planar, axis=1)
+
+    def _epipole_angle(self, a: _State, b: _State) -> float:
+        """Angle (degrees, sign-free) between two solutions' normalised epipoles `N₀ e`."""
+        da, db = self.N0 @ a.e, self.N0 @ b.e
+        cos = abs(float(da @ db)) / max(float(np.linalg.norm(da) * np.linalg.norm(db)), 1e-300)
+        return math.degrees(math.acos(min(cos, 1.0)))
+
+    def _check_parallax(self, result: GeneralResult, state: _State) -> None:
+        """Declare ρ* unobserved (and set it to 0, `e` to 0) when its parallax is too small or too uncertain."""
+        parallax = result.parallax_px
+        std = result.rho_std()
+        c_norm = float(np.linalg.norm(state.c))
+        snr = c_norm / float(np.sqrt(np.mean(std**2))) if c_norm > 0 and np.all(np.isfinite(std)) else 0.0
+        if parallax < self.config.min_parallax_px or snr < self.config.min_parallax_snr:
+            result.flags.append(FLAG_NO_PARALLAX)
+            result.reason += (f"; parallax {parallax:.3f} px RMS (SNR {snr:.1f}) below detection "
+                              f"({self.config.min_parallax_px} px, SNR {self.config.min_parallax_snr}): planar "
+                              "target or too little translation, ρ* set to 0")
+            result.rho_coeffs = np.zeros_like(result.rho_coeffs)
+            result.e = np.zeros(3)
+
+    def _result(
+        self, state: _State, iterations: list[int], converged: bool, reason: str, info: F64
+    ) -> GeneralResult:
+        flags: list[str] = []
+        cfg = self.config.base
+        if converged and state.inlier_ratio < cfg.min_inlier_ratio:
+            converged = False
+            reason = f"inlier ratio {state.inlier_ratio:.3f} below min_inlier_ratio {cfg.min_inlier_ratio} (occlusion?)"
+            flags.append(FLAG_OCCLUSION)
+        parallax = self._parallax_px(state.G, state.e, state.c)
+        return GeneralResult(
+            G=state.G, e=state.e, rho_coeffs=state.c.copy(), basis=self.basis, S=state.gains.copy(), beta=state.beta,
+            rho_information=info, parallax_px=float(np.sqrt(np.mean(parallax**2))), iterations=iterations,
+            residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio,
+            scale=float("nan") if state.scale is None else state.scale, converged=converged, reason=reason, flags=flags,
+        )
+
+    def _failed(
+        self, state: _State, reason: str, flags: list[str], iterations: list[int] | None = None
+    ) -> GeneralResult:
+        return GeneralResult(
+            G=state.G, e=state.e, rho_coeffs=state.c.copy(), basis=self.basis, S=np.asarray(state.gains, dtype=float),
+            beta=float(state.beta), rho_information=np.zeros((self.basis.size,) * 2), iterations=iterations or [],
+            converged=False, reason=reason, flags=flags,
+        )
+
+
+def _flags_for(reason: str) -> list[str]:
+    """Failure flags from a reason string of the planar or general solver."""
+    if "degenerate" in reason:
+        return [FLAG_LOW_TEXTURE]
+    if "inlier" in reason:
+        return [FLAG_OCCLUSION]
+    if "diverged" in reason or "non-finite" in reason:
+        return [FLAG_DIVERGED]
+    return []
+
+
+def register_general(
+    reference: ArrayLike,
+    current: ArrayLike,
+    roi: Roi | None = None,
+    G0: ArrayLike | None = None,
+    e0: ArrayLike | None = None,
+    rho0: ArrayLike | None = None,
+    config: GeneralConfig = GeneralConfig(),
+    mask: ArrayLike | None = None,
+) -> GeneralResult:
+    """One-shot general registration of `current` against `reference` over `roi = (x, y, w, h)` (reference pixels).
+
+    Without `rho0` ρ* is estimated (several epipole starts, module docstring); `G0` is the starting homography
+    (the global initialiser's when None). With `rho0` (coefficients of `ParallaxBasis`, this config's degree) ρ* is
+    held fixed and only `G`, `e` (from `e0`, default 0), `S`, `β` are estimated from `G0` (required then).
+    Raises ValueError on bad input; a failed registration is reported in the result (`converged`, `reason`, `flags`).
+    """
+    problem = GeneralRegistration(reference, roi=roi, mask=mask, config=config)
+    cur = checked_grey(current, "current")
+    if cur.shape != problem.planar.shape:
+        raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
+                         f"{problem.planar.shape[1]}×{problem.planar.shape[0]}")
+    start = None if G0 is None else np.asarray(G0, dtype=np.float64).reshape(3, 3)
+    if rho0 is None:
+        if start is None:
+            start = global_start(problem, cur)
+            if start is None:
+                return problem._failed(_State(np.eye(3), np.zeros(3), np.zeros(problem.basis.size),
+                                              np.ones(problem.grid), 0.0, None),
+                                       "global initialisation found no confident estimate (LOST)", [FLAG_LOST])
+        return problem.estimate(cur, start)
+    rho = np.asarray(rho0, dtype=np.float64).reshape(-1)
+    if rho.size != problem.basis.size:
+        raise ValueError(f"rho0 has {rho.size} coefficients, expected {problem.basis.size} "
+                         f"(degree {config.rho_degree})")
+    if start is None:
+        raise ValueError("G0 is required with rho0 (tracking from a known parallax field)")
+    e = np.zeros(3) if e0 is None else np.asarray(e0, dtype=np.float64).reshape(3)
+    return problem.track(cur, start, e, rho)
+
+
+def global_start(problem: GeneralRegistration, current: F32) -> F64 | None:
+    """`G` from the global initialiser (planar refinement), None when it reports LOST."""
+    from ddvs_service.registration.global_init import GlobalInitializer, PlanarRefiner
+
+    ref = problem.reference[0]
+    init = GlobalInitializer(refiner_factory=lambda r, roi: PlanarRefiner(r, roi, config=replace(problem.config.base)))
+    found = init.initialize(ref, problem.roi, current)
+    return found.G
