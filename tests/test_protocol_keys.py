@@ -1,0 +1,98 @@
+"""Key expressions, the rmw_zenoh key/attachment layout, and the documented key table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import zenoh
+import zenoh.ext
+from rosbags.typesys import Stores, get_typestore
+
+from ddvs_service.protocol import TOPICS, Keys, RmwAttachment, RmwPublisherIdentity, TruncatedMessage, rmw_zenoh_key
+from ddvs_service.protocol.rmw import TYPE_HASHES, dds_type_name
+
+DOC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+
+
+def test_default_keys() -> None:
+    keys = Keys()
+    assert keys.camera_image == "ddvs/robot0/camera/image"
+    assert keys.camera_info == "ddvs/robot0/camera/info"
+    assert keys.servo_twist == "ddvs/robot0/servo/twist"
+    assert keys.servo_status == "ddvs/robot0/servo/status"
+    assert keys.servo_config == "ddvs/robot0/servo/config"
+    assert keys.servo_state == "ddvs/robot0/servo/state"
+    assert keys.servo_reference == "ddvs/robot0/servo/reference"
+    assert keys.servo_command == "ddvs/robot0/servo/command"
+    assert keys.arm_joint_states == "ddvs/robot0/arm/joint_states"
+    assert keys.arm_joint_velocity == "ddvs/robot0/arm/joint_velocity"
+    assert keys.arm_ground_truth == "ddvs/robot0/arm/ground_truth"
+    assert keys.liveliness == "ddvs/robot0/servo/alive"
+    assert Keys("lab/cell1", "ur5").servo_twist == "lab/cell1/ur5/servo/twist"
+    for name in TOPICS:  # every key is a valid, wildcard-free Zenoh key expression
+        assert str(zenoh.KeyExpr(keys.key(name))) == keys.key(name)
+
+
+@pytest.mark.parametrize(
+    ("prefix", "robot", "problem"),
+    [
+        ("", "r", "non-empty"),
+        ("ddvs", "r*", "wildcard"),
+        ("dd$s", "r", "wildcard"),
+        ("a?", "r", "wildcard"),
+        ("ddvs", "#r", "wildcard"),
+        ("/ddvs", "r", "leading"),
+        ("ddvs/", "r", "leading"),
+        ("a//b", "r", "chunks"),
+    ],
+)
+def test_invalid_parts_are_rejected(prefix: str, robot: str, problem: str) -> None:
+    with pytest.raises(ValueError, match=problem):
+        Keys(prefix, robot)
+
+
+def test_rmw_mode_switches_only_ros_typed_topics() -> None:
+    keys = Keys(rmw_domain_id=7)
+    assert keys.rmw and not Keys().rmw
+    assert keys.camera_image == (
+        "7/ddvs/robot0/camera/image/sensor_msgs::msg::dds_::Image_/"
+        "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
+    )
+    assert keys.servo_twist.startswith("7/ddvs/robot0/servo/twist/geometry_msgs::msg::dds_::TwistStamped_/RIHS01_")
+    assert keys.servo_status == "ddvs/robot0/servo/status"  # JSON stays on the plain key
+    assert keys.ros_topic("arm_joint_states") == "/ddvs/robot0/arm/joint_states"
+    with pytest.raises(ValueError, match="ROS name token"):
+        Keys(robot="robot-0", rmw_domain_id=0)
+    with pytest.raises(ValueError, match="domain id"):
+        Keys(rmw_domain_id=300)
+
+
+def test_type_hashes_match_the_ros_definitions() -> None:
+    for store in (Stores.ROS2_JAZZY, Stores.ROS2_KILTED):
+        typestore = get_typestore(store)
+        for ros_type, expected in TYPE_HASHES.items():
+            assert typestore.hash_rihs01(ros_type) == expected, (store, ros_type)
+    assert dds_type_name("sensor_msgs/msg/JointState") == "sensor_msgs::msg::dds_::JointState_"
+    assert rmw_zenoh_key(0, "/a/b/", "sensor_msgs/msg/Image").startswith("0/a/b/sensor_msgs::msg::dds_::Image_/")
+
+
+def test_attachment_layout_is_zenohs_serialization_of_the_rmw_tuple() -> None:
+    gid = bytes(range(16))
+    ours = RmwAttachment(42, 1_700_000_000_000_000_123, gid).encode()
+    reference = zenoh.ext.z_serialize((zenoh.ext.Int64(42), zenoh.ext.Int64(1_700_000_000_000_000_123), gid))
+    assert ours == reference.to_bytes() and len(ours) == 33
+    assert RmwAttachment.decode(ours) == RmwAttachment(42, 1_700_000_000_000_000_123, gid)
+    with pytest.raises(TruncatedMessage):
+        RmwAttachment.decode(ours[:-1])
+    identity = RmwPublisherIdentity()
+    first, second = (RmwAttachment.decode(identity.next_attachment(5)) for _ in range(2))
+    assert (first.sequence_number, second.sequence_number) == (1, 2) and first.gid == second.gid == identity.gid
+
+
+def test_docs_key_table_matches_the_code() -> None:
+    text = DOC.read_text(encoding="utf-8")
+    for spec in TOPICS.values():
+        qos = f"{spec.priority}, {spec.congestion}{', express' if spec.express else ''}"
+        row = f"| `<prefix>/<robot>/{spec.suffix}` | {spec.payload} | {spec.publisher} | {spec.subscribers} | {qos} |"
+        assert f"{row} {spec.delivery} |" in text, f"docs/protocol.md lacks the row:\n{row} {spec.delivery} |"
