@@ -26,5 +26,5 @@ def test_zenoh_configs_parse(path: Path) -> None:
 def test_bad_service_config_is_named(tmp_path: Path) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text('{"control": {"law": "pid"}}')
-    with pytest.raises(ValueError, match=r"bad\.json.*law"):
+    with pytest.raises(ValueError, match=r"(?s)bad\.json.*law"):
         ServiceConfig.from_file(bad)
