@@ -1,0 +1,125 @@
+"""Stateful general tracker: eq. (2) `p ∝ G p* + ρ*(p*) e` through a video stream, ρ* kept in the reference frame.
+
+- First frame (or after LOST): `G` from the global initialiser; when no ρ* is known yet it is estimated on that
+  frame (several epipole starts, `general.GeneralRegistration.estimate`), else `e` restarts from 0 with ρ* kept.
+- Every other frame: `G`, `e`, `S`, `β` warm-started from the last good frame, ρ* held fixed (13 unknowns with one
+  gain), so ρ* cannot drift when the camera stops translating (`e → 0`). The information on ρ* (given `e`) of each
+  converged frame is added to `rho_information`; it grows only while the camera translates.
+- A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags);
+  `lost_after` consecutive failures declare LOST (flag `lost`), and the next frame re-acquires `G` and `e` globally.
+`track` never raises and never returns non-finite numbers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ddvs_service.registration.general import (
+    FLAG_DIVERGED,
+    FLAG_LOST,
+    GeneralConfig,
+    GeneralRegistration,
+    GeneralResult,
+    global_start,
+)
+from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.images import checked_grey
+from ddvs_service.registration.planar import Roi
+
+F64 = NDArray[np.float64]
+
+
+class GeneralTracker:
+    """Track the ROI of `reference` (same face as the planar `Tracker`). `rho` optionally gives known ρ*
+    coefficients (`ParallaxBasis` of `config.rho_degree`), e.g. from an earlier session."""
+
+    def __init__(
+        self,
+        reference: ArrayLike,
+        roi: Roi | None = None,
+        config: GeneralConfig = GeneralConfig(),  # noqa: B008 - frozen, immutable default
+        mask: ArrayLike | None = None,
+        rho: ArrayLike | None = None,
+    ) -> None:
+        self._problem = GeneralRegistration(reference, roi=roi, mask=mask, config=config)
+        n = self._problem.basis.size
+        self._rho: F64 | None = None if rho is None else np.asarray(rho, dtype=np.float64).reshape(n).copy()
+        self._information = np.zeros((n, n))
+        self._G: F64 | None = None  # None: (re)acquire globally on the next frame
+        self._e = np.zeros(3)
+        self._gains = np.ones(self._problem.grid)
+        self._beta = 0.0
+        self._scale: float | None = None
+        self._failures = 0
+
+    @property
+    def basis(self) -> ParallaxBasis:
+        """The parallax basis of ρ*."""
+        return self._problem.basis
+
+    @property
+    def rho_coeffs(self) -> F64 | None:
+        """ρ* coefficients (None until estimated)."""
+        return None if self._rho is None else self._rho.copy()
+
+    @property
+    def rho_information(self) -> F64:
+        """Accumulated information on the ρ* coefficients (given `e`)."""
+        return self._information.copy()
+
+    @property
+    def lost(self) -> bool:
+        """True when the next frame will be re-acquired globally."""
+        return self._G is None
+
+    def track(self, current: ArrayLike) -> GeneralResult:
+        """Register `current` (module docstring); on failure keep the state and report why."""
+        try:
+            result = self._track(checked_grey(current, "current"))
+        except Exception as exc:  # the tracker's contract: report, never raise
+            return self._failure(f"error: {type(exc).__name__}: {exc}", [FLAG_DIVERGED])
+        finite = all(np.all(np.isfinite(x)) for x in (result.G, result.e, result.rho_coeffs, result.S, [result.beta]))
+        if not finite:
+            return self._count_failure(self._failure(f"non-finite estimate ({result.reason})", [FLAG_DIVERGED]))
+        if not result.converged:
+            return self._count_failure(result)
+        self._G, self._e, self._gains, self._beta = result.G, result.e, result.S, result.beta
+        self._scale = result.scale if np.isfinite(result.scale) else None
+        self._information = self._information + result.rho_information
+        result.rho_information = self._information.copy()
+        self._failures = 0
+        return result
+
+    def _track(self, current: NDArray[np.float32]) -> GeneralResult:
+        problem = self._problem
+        if self._G is None:
+            G0 = global_start(problem, current)
+            if G0 is None:
+                return self._failure("LOST: the global initialiser found no confident estimate", [FLAG_LOST])
+            if self._rho is None:
+                result = problem.estimate(current, G0)
+                if result.converged:
+                    self._rho = result.rho_coeffs.copy()
+                return result
+            return problem.track(current, G0, np.zeros(3), self._rho)
+        assert self._rho is not None
+        return problem.track(current, self._G, self._e, self._rho, self._gains, self._beta, self._scale)
+
+    def _count_failure(self, result: GeneralResult) -> GeneralResult:
+        self._failures += 1
+        if self._failures >= self._problem.config.lost_after and self._G is not None:
+            self._G = None
+            result.flags.append(FLAG_LOST)
+            result.reason += f"; LOST after {self._failures} failed frames: re-acquiring on the next frame"
+        return result
+
+    def _failure(self, reason: str, flags: list[str]) -> GeneralResult:
+        """The last good state, reported as not converged."""
+        n = self._problem.basis.size
+        return GeneralResult(
+            G=np.eye(3) if self._G is None else self._G.copy(), e=self._e.copy(),
+            rho_coeffs=np.zeros(n) if self._rho is None else self._rho.copy(), basis=self._problem.basis,
+            S=self._gains.copy(), beta=self._beta, rho_information=self._information.copy(), converged=False,
+            reason=reason, flags=list(flags),
+        )
