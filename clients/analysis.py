@@ -98,7 +98,8 @@ def pose_series(recording: Recording) -> PoseSeries | None:
 class RunSummary:
     """What `summarize` reports (JSON-ready through `as_dict`). Latencies are the service's own per-frame times
     (median and 95th percentile, ms); `stamp_to_twist_ms` is the median delay from a frame's stamp to the arrival
-    of the twist computed from it, meaningful with a real-time clock only (a lockstep plant's stamps are simulated)."""
+    of the twist computed from it, only for a real-time clock (a lockstep plant's stamps are simulated time; meta
+    `clock` "lockstep" leaves it None)."""
 
     frames: int
     images_to_convergence: int | None
@@ -135,6 +136,6 @@ def summarize(recording: Recording) -> RunSummary:
         summary.final_translation_error_mm = float(poses.translation_error_m[-1] * 1e3)
         summary.final_rotation_error_deg = float(poses.rotation_error_deg[-1])
     twists = recording["twist"]
-    if twists:
+    if twists and recording.meta.get("clock") != "lockstep":
         summary.stamp_to_twist_ms = float(np.median([(t["recv_ns"] - t["stamp_ns"]) * 1e-6 for t in twists]))
     return summary

@@ -71,7 +71,8 @@ class Monitor:
         self._subscribers.clear()
 
     def snapshot(self) -> dict[str, Any]:
-        """JSON-ready view: state, error, twist, rates (Hz over the window), latency (ms), counters, message."""
+        """JSON-ready view: state, status `seq`, error, twist, rates (Hz over the window), latency (ms), counters,
+        message."""
         now = time.monotonic()
         with self._lock:
             rates = {}
@@ -80,14 +81,15 @@ class Monitor:
                     arrivals.popleft()
                 rates[name] = round(len(arrivals) / self.window, 2)
             status, state = self._status, self._state
-        snap: dict[str, Any] = {"state": None, "has_reference": None, "error_norm": None, "error": None,
+        snap: dict[str, Any] = {"state": None, "seq": None, "has_reference": None, "error_norm": None, "error": None,
                                 "twist": None, "rates_hz": rates, "latency_ms": None, "counters": None,
                                 "message": ""}
         if state is not None:
             snap.update(state=state.get("state"), has_reference=state.get("has_reference"),
                         message=state.get("message", ""))
         if status is not None:
-            snap.update(state=status.get("state"), error_norm=status.get("error_norm"), error=status.get("error"),
+            snap.update(state=status.get("state"), seq=status.get("seq"), error_norm=status.get("error_norm"),
+                        error=status.get("error"),
                         twist=status.get("twist"), latency_ms=status.get("latency_ms"),
                         counters=status.get("counters"), message=status.get("message") or snap["message"])
         return snap
