@@ -13,6 +13,7 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
   - 3 epipole coordinates `e ← e + N⁻¹ δe'` (normalised units): `∂P = ρ N⁻¹ δe'`;
   - when `with_rho`: one per parallax basis function `φ_k = Σ_m B_km x^i y^j`: `∂P = φ_k e δc_k`;
   - gain nodes `φ_gain · I(w)` and the bias 1 (as `kernels.planar_step`);
+- reference pixels masked by the caller (`planar_step.MASKED`) are skipped, as are warps leaving the image;
 - robust weight and statistics exactly as `kernels.planar_step` (Huber/Tukey with a caller-given σ, valid and inlier
   counts, Σ r², a log-histogram of |r| whose median gives the next MAD scale).
 
@@ -27,6 +28,7 @@ from kernels.planar_step import (
     INLIER_C,
     LOG2_MAX,
     LOG2_MIN,
+    MASK_LIMIT,
     MAX_BANDS,
     N_STATS,
     NBINS,
@@ -172,8 +174,8 @@ def general_step(
                     cr, okr = projected_sample(cur, x + 1.0, y, 1.0)
                     cu, oku = projected_sample(cur, x, y - 1.0, 1.0)
                     cd, okd = projected_sample(cur, x, y + 1.0, 1.0)
-                    finite = ir + gxr + gyr == ir + gxr + gyr  # NaN marks masked-out reference pixels
-                    if ok_z and finite and ok0 + okl + okr + oku + okd == 5:
+                    unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
+                    if ok_z and unmasked and ok0 + okl + okr + oku + okd == 5:
                         gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
                         r = gain * c0 + beta - ir
                         # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
