@@ -12,7 +12,6 @@ import io
 import struct
 from typing import Literal
 
-import cv2
 import numpy as np
 from numpy.lib import format as npy_format
 from numpy.typing import NDArray
@@ -29,6 +28,8 @@ _NPY_DTYPES = ("|u1", "<u2", ">u2", "<f4", ">f4", "<f8", ">f8")
 def encode_upload(image: NDArray, fmt: UploadFormat = "png") -> str:
     """Base64 text of `image` ((H, W) or (H, W, C)) as PNG (uint8/uint16, lossless) or `.npy` (any listed dtype)."""
     if fmt == "png":
+        import cv2  # deferred: importing OpenCV takes ~0.5 s
+
         ok, data = cv2.imencode(".png", np.ascontiguousarray(image))
         if not ok:
             raise ValueError(f"could not encode an image of shape {image.shape} and dtype {image.dtype} as PNG")
@@ -52,6 +53,8 @@ def _decode_png(raw: bytes, max_pixels: int) -> NDArray:
         raise InvalidMessage("uploaded 'png' data does not start with a PNG signature and IHDR chunk")
     width, height = struct.unpack(">II", raw[16:24])
     _check_pixels(height, width, max_pixels)
+    import cv2  # deferred: importing OpenCV takes ~0.5 s
+
     image = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InvalidMessage(f"uploaded PNG ({width}×{height}) could not be decoded")
