@@ -146,19 +146,23 @@ def run_arm(settings: ArmRunSettings, progress: Callable[[dict[str, Any]], None]
     common = ["--prefix", settings.prefix, "--robot", settings.robot]
     started = time.monotonic()
     with ExitStack() as stack:
-        stack.enter_context(child("sim", ["sim", "arm", "--config", str(settings.scene), "--clock", settings.clock,
-                                          "--fps", str(settings.fps), "--lockstep-timeout", "2", "--start", "start",
-                                          "--listen", f"tcp/127.0.0.1:{sim_port}", *common], out / "logs"))
-        stack.enter_context(child("serve", ["serve", "--config", str(out / "serve.json"), "--fresh"], out / "logs"))
-        stack.enter_context(child("bridge", ["bridge", "--config", str(settings.bridge), "--connect",
-                                             f"tcp/127.0.0.1:{sim_port},tcp/127.0.0.1:{serve_port}", *common],
-                                  out / "logs"))
+        commands = {
+            "sim": ["sim", "arm", "--config", str(settings.scene), "--clock", settings.clock, "--fps",
+                    str(settings.fps), "--lockstep-timeout", "2", "--start", "start",
+                    "--listen", f"tcp/127.0.0.1:{sim_port}", *common],
+            "serve": ["serve", "--config", str(out / "serve.json"), "--fresh"],
+            "bridge": ["bridge", "--config", str(settings.bridge), "--connect",
+                       f"tcp/127.0.0.1:{sim_port},tcp/127.0.0.1:{serve_port}", *common],
+        }
+        children = {name: stack.enter_context(child(name, args, out / "logs")) for name, args in commands.items()}
         session = stack.enter_context(open_session(SessionConfig(
             connect=[f"tcp/127.0.0.1:{sim_port}", f"tcp/127.0.0.1:{serve_port}"])))
         monitor = Monitor(session, keys, window=1.0)
         stack.callback(monitor.close)
-        if not monitor.status_received.wait(max(1.0, settings.time_limit - (time.monotonic() - started))):
-            raise RuntimeError(f"no status from the service within the time limit; see the logs in {out / 'logs'}")
+        while not monitor.status_received.wait(0.2):
+            _check_children(children, out / "logs")
+            if time.monotonic() - started > settings.time_limit:
+                raise RuntimeError(f"no status from the service within the time limit; see {out / 'logs'}")
         meta = {"reference_pose": T_world_ref.reshape(-1).tolist(), "law": settings.law,
                 "template": list(settings.template), "clock": settings.clock, "fps": settings.fps,
                 "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene)}
@@ -176,11 +180,20 @@ def run_arm(settings: ArmRunSettings, progress: Callable[[dict[str, Any]], None]
             reply = send_command(session, keys, command, timeout=30.0)
             if reply is None or not reply.ok:
                 raise RuntimeError(f"{command.op} failed: {'no reply' if reply is None else reply.error}")
-        return _wait_for_convergence(settings, monitor, started, progress, out)
+        return _wait_for_convergence(settings, monitor, started, progress, out, children)
+
+
+def _check_children(children: dict[str, subprocess.Popen], log_dir: Path) -> None:
+    """Raise `RuntimeError` with the end of its log when a child process has exited."""
+    for name, proc in children.items():
+        if proc.poll() is not None:
+            tail = (log_dir / f"{name}.log").read_text(encoding="utf-8", errors="replace")[-2000:]
+            raise RuntimeError(f"`ddvs {name}` exited with status {proc.returncode}; end of its log:\n{tail}")
 
 
 def _wait_for_convergence(settings: ArmRunSettings, monitor: Any, started: float,
-                          progress: Callable[[dict[str, Any]], None] | None, out: Path) -> ArmRunResult:
+                          progress: Callable[[dict[str, Any]], None] | None, out: Path,
+                          children: dict[str, subprocess.Popen]) -> ArmRunResult:
     first_seq: int | None = None
     next_report = time.monotonic()
     converged_since: int | None = None
@@ -202,6 +215,7 @@ def _wait_for_convergence(settings: ArmRunSettings, monitor: Any, started: float
         if elapsed >= settings.time_limit:
             return ArmRunResult(False, f"time limit {settings.time_limit:.0f} s reached", out / "recording", elapsed,
                                 images)
+        _check_children(children, out / "logs")
         if progress is not None and time.monotonic() >= next_report:
             progress({**snap, "images": images, "elapsed_s": round(elapsed, 1)})
             next_report += 1.0
