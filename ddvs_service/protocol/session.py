@@ -126,8 +126,11 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def session_config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> SessionConfig:
-    """Defaults, then the environment, then the flags of `add_zenoh_arguments` that were given."""
+def session_config_from_args(
+    args: argparse.Namespace, environ: Mapping[str, str] | None = None, base: SessionConfig | None = None
+) -> SessionConfig:
+    """`base` (e.g. a node's configuration file; defaults when None), then the environment, then the flags of
+    `add_zenoh_arguments` that were given."""
     update: dict[str, Any] = {}
     if args.mode is not None:
         update["mode"] = args.mode
@@ -139,7 +142,7 @@ def session_config_from_args(args: argparse.Namespace, environ: Mapping[str, str
         update["zenoh_config"] = args.zenoh_config
     if args.multicast_scouting is not None:
         update["multicast_scouting"] = args.multicast_scouting
-    return SessionConfig.from_env(environ).updated(update, "command line")
+    return SessionConfig.from_env(environ, base).updated(update, "command line")
 
 
 def open_session(cfg: SessionConfig) -> zenoh.Session:

@@ -17,13 +17,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
 
 
-def _zenoh_flags_given(args: argparse.Namespace) -> bool:
-    import os
-
-    flags = (args.mode, args.connect, args.listen, args.zenoh_config, args.multicast_scouting)
-    return any(f is not None for f in flags) or any(k.startswith("DDVS_ZENOH_") for k in os.environ)
-
-
 def run(args: argparse.Namespace) -> int:
     import shutil
     import signal
@@ -36,9 +29,7 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level)
     config = ServiceConfig.from_file(args.config) if args.config else ServiceConfig()
-    update: dict[str, object] = {}
-    if _zenoh_flags_given(args):  # flags and DDVS_ZENOH_* replace the file's "zenoh" section as a whole
-        update["zenoh"] = session_config_from_args(args)
+    update: dict[str, object] = {"zenoh": session_config_from_args(args, base=config.zenoh)}
     if args.state_dir:
         update["state_dir"] = args.state_dir
     if args.robot:
