@@ -45,9 +45,14 @@ MASK_LIMIT = -1.0e5  # any pyramid tap on a MASKED pixel keeps the value below t
 N_GEOMETRIC = 8
 N_STATS = 4  # n_valid, n_inliers, Σ r², median |r| (the last one only in the final sums)
 MAX_BANDS = 32
-NBINS = 256
+NBINS = 256  # log-histogram of kernels.general_step
 LOG2_MIN = -8.0
 LOG2_MAX = 12.0
+HIST_LOG2_MIN = -8  # |r| histogram of planar_step: octaves 2^-8 … 2^12 grey levels, HIST_SUB linear bins each
+HIST_SUB_BITS = 4
+HIST_SUB = 1 << HIST_SUB_BITS
+HIST_BINS = 20 * HIST_SUB
+OUTSIDE = MASKED  # warped-current value where the warp leaves the current image
 HUBER_K = 1.345
 TUKEY_C = 4.685
 INLIER_C = TUKEY_C  # |r| ≤ 4.685 σ counts as an inlier whatever the loss
@@ -65,7 +70,7 @@ def n_acc(n: int) -> int:
 
 def work_size(n: int) -> int:
     """Size of the float32 work array for `n` unknowns: final sums, per-band partials, per-band histograms."""
-    return n_acc(n) * (1 + MAX_BANDS) + NBINS * MAX_BANDS
+    return n_acc(n) * (1 + MAX_BANDS) + HIST_BINS * MAX_BANDS
 
 
 @ti.func
@@ -101,16 +106,38 @@ def gain_at(params: ti.template(), u: ti.f32, v: ti.f32, grid_rows: ti.template(
     return gain, phi
 
 
+@ti.func
+def hist_bin(a: ti.f32) -> ti.i32:
+    """Histogram bin of `a = |r| ≥ 0` read from its float32 bits (no logarithm): `HIST_SUB` linear bins per octave
+    from `2^HIST_LOG2_MIN`; smaller values fall in bin 0, larger ones in the last bin."""
+    bits = ti.bit_cast(ti.max(a, 2.0**HIST_LOG2_MIN), ti.i32)
+    return ti.min((bits >> (23 - HIST_SUB_BITS)) - ((127 + HIST_LOG2_MIN) << HIST_SUB_BITS), HIST_BINS - 1)
+
+
+@ti.func
+def hist_value(k: ti.i32, frac: ti.f32) -> ti.f32:
+    """|r| at fraction `frac` ∈ [0, 1] across bin `k` of `hist_bin` (linear inside the bin, as the bins are)."""
+    octave = k >> HIST_SUB_BITS
+    sub = k & (HIST_SUB - 1)
+    return 2.0 ** ti.cast(HIST_LOG2_MIN + octave, ti.f32) * (1.0 + (sub + frac) / HIST_SUB)
+
+
 @ti.kernel
 def planar_step(
     ref: ti.types.ndarray(dtype=ti.f32, ndim=2),
     cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    warped: ti.types.ndarray(dtype=ti.f32, ndim=2),
     params: ti.types.ndarray(dtype=ti.f32, ndim=1),
     work: ti.types.ndarray(dtype=ti.f32, ndim=1),
     grid_rows: ti.template(),
     grid_cols: ti.template(),
 ):
-    """Evaluate residuals, robust weights and normal equations at the parameters in `params` (module docstring)."""
+    """Evaluate residuals, robust weights and normal equations at the parameters in `params` (module docstring).
+
+    `warped` is scratch of shape `(v1 − v0 + 3, u1 − u0 + 3)`: the current image warped over the ROI grown by one
+    pixel on each side (`OUTSIDE` where the warp leaves `cur`), so that the five warped samples of a pixel's ESM
+    gradient are read, not re-interpolated.
+    """
     P = ti.static(N_GEOMETRIC + grid_rows * grid_cols + 1)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
@@ -126,16 +153,19 @@ def planar_step(
     beta = params[PARAMS_BETA]
     sigma = params[PARAMS_SIGMA]
     kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
-    g0, g1, g3, g4, g6, g7 = params[0], params[1], params[3], params[4], params[6], params[7]
     hr = ref.shape[0]
     wr = ref.shape[1]
-    bin_scale = NBINS / (LOG2_MAX - LOG2_MIN)
-    # A CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
+    # Pass 1: the current image warped over the grown ROI (embarrassingly parallel).
+    for i, j in ti.ndrange(v1 - v0 + 3, u1 - u0 + 3):
+        x, y, z = homography_apply(params, PARAMS_G, ti.cast(u0 - 1 + j, ti.f32), ti.cast(v0 - 1 + i, ti.f32))
+        val, ok = projected_sample(cur, x, y, z)
+        warped[i, j] = val if ok == 1 else OUTSIDE
+    # Pass 2: a CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
     for it in range(nb * 512):
         if it % 512 == 0:
             b = it // 512
-            hoff = hist0 + b * NBINS
-            for k in range(NBINS):
+            hoff = hist0 + b * HIST_BINS
+            for k in range(HIST_BINS):
                 work[hoff + k] = 0.0
             acc = ti.Vector.zero(ti.f32, NACC)
             rows = v1 - v0 + 1
@@ -143,20 +173,22 @@ def planar_step(
                 racc = ti.Vector.zero(ti.f32, NACC)
                 vu = ti.max(v - 1, 0)
                 vd = ti.min(v + 1, hr - 1)
+                i = v - v0 + 1
                 for u in range(u0, u1 + 1):
                     ul = ti.max(u - 1, 0)
                     ur = ti.min(u + 1, wr - 1)
                     ir = ref[v, u]
                     gxr = (ref[v, ur] - ref[v, ul]) / (ur - ul)
                     gyr = (ref[vd, u] - ref[vu, u]) / (vd - vu)
-                    x, y, z = homography_apply(params, PARAMS_G, ti.cast(u, ti.f32), ti.cast(v, ti.f32))
-                    c0, ok0 = projected_sample(cur, x, y, z)
-                    cl, okl = projected_sample(cur, x - g0, y - g3, z - g6)
-                    cr, okr = projected_sample(cur, x + g0, y + g3, z + g6)
-                    cu, oku = projected_sample(cur, x - g1, y - g4, z - g7)
-                    cd, okd = projected_sample(cur, x + g1, y + g4, z + g7)
+                    j = u - u0 + 1
+                    c0 = warped[i, j]
+                    cl = warped[i, j - 1]
+                    cr = warped[i, j + 1]
+                    cu = warped[i - 1, j]
+                    cd = warped[i + 1, j]
+                    ok = ti.min(ti.min(c0, cl), ti.min(ti.min(cr, cu), cd)) > MASK_LIMIT
                     unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
-                    if unmasked and ok0 + okl + okr + oku + okd == 5:
+                    if unmasked and ok:
                         gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
                         r = gain * c0 + beta - ir
                         gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
@@ -177,24 +209,21 @@ def planar_step(
                             J[N_GEOMETRIC + k] = phi[k] * c0
                         J[P - 1] = 1.0
                         w = robust_weight(r, sigma, kind)
-                        idx = 0
-                        for i in ti.static(range(P)):
-                            wji = w * J[i]
-                            for j in ti.static(range(i, P)):
-                                racc[idx] += wji * J[j]
-                                idx += 1
-                            racc[NT + i] += wji * r
+                        for a in ti.static(range(P)):
+                            wja = w * J[a]
+                            for c in ti.static(range(a, P)):
+                                racc[ti.static(a * P - a * (a - 1) // 2 + c - a)] += wja * J[c]
+                            racc[NT + a] += wja * r
                         racc[NT + P + 0] += 1.0
                         if ti.abs(r) <= INLIER_C * sigma:
                             racc[NT + P + 1] += 1.0
                         racc[NT + P + 2] += r * r
-                        lb = ti.log(ti.max(ti.abs(r), 2.0**LOG2_MIN)) / ti.log(2.0)
-                        k_bin = ti.min(ti.cast((lb - LOG2_MIN) * bin_scale, ti.i32), NBINS - 1)
-                        work[hoff + k_bin] = work[hoff + k_bin] + 1.0  # band-owned: plain store, no atomic
+                        k_bin = hoff + hist_bin(ti.abs(r))
+                        work[k_bin] = work[k_bin] + 1.0  # band-owned: plain store, no atomic
                 acc += racc
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
-    # Second pass (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
+    # Pass 3 (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
     ti.loop_config(serialize=True)
     for _ in range(1):
         for k in range(NACC):
@@ -202,21 +231,16 @@ def planar_step(
             for b in range(nb):
                 total += ti.cast(work[(1 + b) * NACC + k], ti.f64)
             work[k] = ti.cast(total, ti.f32)
-        n_valid = 0.0
-        for k in range(NBINS):
-            for b in range(nb):
-                n_valid += work[hist0 + b * NBINS + k]
-        half = 0.5 * n_valid
+        half = 0.5 * work[NT + P]
         cum = 0.0
         median = 0.0
         found = 0
-        for k in range(NBINS):
+        for k in range(HIST_BINS):
             count = 0.0
             for b in range(nb):
-                count += work[hist0 + b * NBINS + k]
+                count += work[hist0 + b * HIST_BINS + k]
             if found == 0 and count > 0.0 and cum + count >= half:
-                frac = (half - cum) / count
-                median = 2.0 ** (LOG2_MIN + (k + frac) / bin_scale)
+                median = hist_value(k, (half - cum) / count)
                 found = 1
             cum += count
         work[NACC - 1] = median

@@ -15,26 +15,32 @@ class RegistrationConfig:
     """How `register` and `Tracker` minimise eq. (5).
 
     - `levels`: pyramid levels at most (1 = full resolution only); fewer are used when the ROI would shrink below
-      `min_level_size` pixels on a side.
+      `min_level_size` pixels on a side. The default (8) lets the ROI size choose: a 200×150 ROI gets 4 levels
+      (coarsest 25×18 px), enough for 40 px + 20° + 15 % scale from identity.
     - `max_iterations`: Gauss-Newton iterations per level.
     - `gain_grid`: (rows, cols) of the bilinear gain surface S of eq. (4) over the ROI; (1, 1) = one global gain.
     - `robust`: M-estimator (Huber k = 1.345 σ, Tukey c = 4.685 σ, or plain least squares); σ = 1.4826 · median |r|,
       never below `scale_floor` grey levels.
     - `min_inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged.
     - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
-    - `step_tolerance_px`: convergence when the last update moves every ROI corner by less than this many pixels of
-      the level being solved (full-resolution pixels at the finest level).
+    - `step_tolerance_px`: convergence when the last update moves every ROI corner by less than this many
+      full-resolution pixels at the finest level; `coarse_step_tolerance_px`: the same, in level pixels, on the
+      coarser levels (which only need to bring the finer level into its basin).
+    - `tracking_levels`: pyramid levels the `Tracker` uses from a warm start (consecutive frames move little); it
+      retries with every level when that does not converge (at most `levels` are used).
     - `max_step_fraction`: an update moving a corner by more than this fraction of the ROI size is scaled down.
     - `bands`: row bands of the reduction (parallel work items), 1…32.
     """
 
-    levels: int = 3
+    levels: int = 8
     max_iterations: int = 30
     gain_grid: tuple[int, int] = (1, 1)
     robust: RobustLoss = "huber"
     min_inlier_ratio: float = 0.5
     min_valid_ratio: float = 0.3
     step_tolerance_px: float = 1e-3
+    coarse_step_tolerance_px: float = 0.05
+    tracking_levels: int = 2
     max_step_fraction: float = 0.25
     scale_floor: float = 0.5
     min_level_size: int = 16
@@ -56,8 +62,11 @@ class RegistrationConfig:
             value = getattr(self, name)
             if not 0.0 < value <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1], got {value}")
-        if not self.step_tolerance_px > 0.0:
-            raise ValueError(f"step_tolerance_px must be > 0, got {self.step_tolerance_px}")
+        for name in ("step_tolerance_px", "coarse_step_tolerance_px"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.tracking_levels < 1:
+            raise ValueError(f"tracking_levels must be ≥ 1, got {self.tracking_levels}")
         if not self.scale_floor > 0.0:
             raise ValueError(f"scale_floor must be > 0 grey levels, got {self.scale_floor}")
         if self.min_level_size < 8:

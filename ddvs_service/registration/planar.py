@@ -24,7 +24,18 @@ from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey, level_matrix
 from ddvs_service.registration.layout import ParamLayout
 from ddvs_service.registration.result import RegistrationResult
-from kernels.planar_step import MASK_LIMIT
+from kernels.planar_step import (
+    MASK_LIMIT,
+    PARAMS_BANDS,
+    PARAMS_BETA,
+    PARAMS_G,
+    PARAMS_GAINS,
+    PARAMS_NORM,
+    PARAMS_ROBUST,
+    PARAMS_ROI,
+    PARAMS_SIGMA,
+    PARAMS_SPAN,
+)
 
 F64 = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
@@ -36,28 +47,20 @@ SIMILARITY = (0, 1, 2, 4)  # sl(3) coordinates of translation, rotation and isot
 
 @dataclass(frozen=True)
 class _Level:
-    """Fixed geometry of one pyramid level: ROI bounds (inclusive), gain-grid span, normalisation, corners."""
+    """Fixed geometry of one pyramid level: ROI bounds (inclusive), gain-grid span, normalisation `N` (level pixels →
+    `q = (p − c) / s`), `D` (full-resolution → level pixels), ROI corners, and the kernel's warped-current scratch."""
 
     index: int
     bounds: tuple[int, int, int, int]
     span: tuple[float, float, float, float]
     norm: tuple[float, float, float]
     n_pixels: int
-
-    @property
-    def D(self) -> F64:
-        return level_matrix(self.index)
-
-    @property
-    def N(self) -> F64:
-        cx, cy, s = self.norm
-        return np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
-
-    @property
-    def corners(self) -> F64:
-        """Homogeneous ROI corners (3×4), level pixels."""
-        u0, v0, u1, v1 = self.bounds
-        return np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]])
+    D: F64
+    D_inv: F64
+    N: F64
+    N_inv: F64
+    corners: F64  # homogeneous ROI corners (3×4), level pixels
+    warped: F32
 
     @property
     def size(self) -> float:
@@ -78,6 +81,12 @@ class _State:
 def _project(G: F64, pts: F64) -> F64:
     q = G @ pts
     return q[:2] / q[2]
+
+
+def _symmetric_index(n: int) -> NDArray[np.intp]:
+    """`idx[i, j]`: position of `H[min(i, j), max(i, j)]` in the kernel's row-major upper triangle."""
+    i, j = np.minimum.outer(np.arange(n), np.arange(n)), np.maximum.outer(np.arange(n), np.arange(n))
+    return i * n - i * (i - 1) // 2 + (j - i)
 
 
 def _validate_roi(roi: Roi | None, shape: tuple[int, ...]) -> Roi:
@@ -105,7 +114,7 @@ class PlanarRegistration:
         config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
     ) -> None:
         from kernels.backend import init
-        from kernels.planar_step import MASKED, PARAMS_GAINS, n_acc, n_params, work_size
+        from kernels.planar_step import MASKED, n_acc, n_params, work_size
 
         init()
         self.config = config
@@ -125,7 +134,9 @@ class PlanarRegistration:
             raise AssertionError("parameter layout and kernel column order disagree")
         self._n = self.layout.size
         self._nacc = n_acc(self._n)
-        self._triu = np.triu_indices(self._n)
+        self._sym = _symmetric_index(self._n)
+        self._sl_G, self._sl_S, self._sl_b = self.layout.slice("G"), self.layout.slice("S"), self.layout.slice("beta")
+        self._robust_code = ROBUST_CODES[config.robust]
         self._params = np.zeros(PARAMS_GAINS + self.grid[0] * self.grid[1], dtype=np.float32)
         self._work = np.zeros(work_size(self._n), dtype=np.float32)
 
@@ -148,13 +159,21 @@ class PlanarRegistration:
             D = level_matrix(index)
             sx0, sx1 = D[0, 0] * np.array([x, x + w - 1]) + D[0, 2]
             sy0, sy1 = D[1, 1] * np.array([y, y + h - 1]) + D[1, 2]
+            cx, cy, s = 0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * max(u1 - u0, v1 - v0)
+            N = np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
             levels.append(
                 _Level(
                     index=index,
                     bounds=(u0, v0, u1, v1),
                     span=(float(sx0), float(sy0), float(sx1), float(sy1)),
-                    norm=(0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * max(u1 - u0, v1 - v0)),
+                    norm=(cx, cy, s),
                     n_pixels=n_pixels,
+                    D=D,
+                    D_inv=np.linalg.inv(D),
+                    N=N,
+                    N_inv=np.linalg.inv(N),
+                    corners=np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]]),
+                    warped=np.empty((v1 - v0 + 3, u1 - u0 + 3), dtype=np.float32),
                 )
             )
         return levels
@@ -166,36 +185,42 @@ class PlanarRegistration:
         gains0: ArrayLike | float = 1.0,
         beta0: float = 0.0,
         scale0: float | None = None,
+        first_level: int | None = None,
     ) -> RegistrationResult:
         """Register `current` starting from `G0` (any scale, positive determinant; identity by default), gains and
-        bias (eq. (4)) and robust scale σ (grey levels; `None`: estimated from a first least-squares evaluation)."""
+        bias (eq. (4)) and robust scale σ (grey levels; `None`: estimated from a first least-squares evaluation).
+
+        `first_level`: the coarsest pyramid level to solve (0 = full resolution only); the coarsest available by
+        default. A warm start whose predicted motion is small starts finer and skips the coarse levels' cost."""
         cur = checked_grey(current, "current")
         if cur.shape != self.shape:
             raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
                              f"{self.shape[1]}×{self.shape[0]}")
+        levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         G = np.eye(3) if G0 is None else sl3_normalize(np.asarray(G0, dtype=np.float64).reshape(3, 3))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
         state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0)
-        pyramid = build_pyramid(cur, len(self.levels))
+        pyramid = build_pyramid(cur, len(levels))
         iterations: list[int] = []
         converged, reason = False, ""
-        for level in reversed(self.levels):
+        for level in reversed(levels):
             ref_l, cur_l = self.reference[level.index], pyramid[level.index]
+            tolerance = self.config.step_tolerance_px if level.index == 0 else self.config.coarse_step_tolerance_px
             count = 0
-            if level is self.levels[-1] and G0 is None:
+            if level is levels[-1] and G0 is None:
                 # Cold start: match the photometric moments, then settle the similarity part with the photometric
                 # unknowns frozen (a misaligned least-squares gain shrinks towards 0 and erases the signal).
                 self._match_moments(level, ref_l, cur_l, state)
                 failed = False
                 for subset in (TRANSLATION, SIMILARITY):
-                    more, _, reason, failed = self._solve_level(level, ref_l, cur_l, state, subset, photometric=False)
+                    more, _, reason, failed = self._solve_level(level, ref_l, cur_l, state, tolerance, subset, False)
                     count += more
                     if failed:
                         break
                 if failed:
                     iterations.append(count)
                     break
-            more, converged, reason, failed = self._solve_level(level, ref_l, cur_l, state)
+            more, converged, reason, failed = self._solve_level(level, ref_l, cur_l, state, tolerance)
             count += more
             iterations.append(count)
             if failed:
@@ -209,28 +234,21 @@ class PlanarRegistration:
             scale=float("nan") if state.scale is None else state.scale,
         )
 
-    def _fill_params(self, level: _Level, G_l: F64, state: _State) -> None:
-        from kernels.planar_step import (
-            PARAMS_BANDS,
-            PARAMS_BETA,
-            PARAMS_G,
-            PARAMS_GAINS,
-            PARAMS_NORM,
-            PARAMS_ROBUST,
-            PARAMS_ROI,
-            PARAMS_SIGMA,
-            PARAMS_SPAN,
-        )
-
+    def _fill_level(self, level: _Level) -> None:
+        """The parameters fixed at one level: normalisation, ROI bounds, gain-grid span, band count."""
         p = self._params
-        p[PARAMS_G : PARAMS_G + 9] = G_l.reshape(9)
         p[PARAMS_NORM : PARAMS_NORM + 3] = level.norm
         p[PARAMS_ROI : PARAMS_ROI + 4] = level.bounds
         p[PARAMS_SPAN : PARAMS_SPAN + 4] = level.span
+        p[PARAMS_BANDS] = self.config.bands
+
+    def _fill_state(self, G_l: F64, state: _State) -> None:
+        """The parameters that change every iteration: `G` (level pixels), bias, robust scale and loss, gains."""
+        p = self._params
+        p[PARAMS_G : PARAMS_G + 9] = G_l.reshape(9)
         p[PARAMS_BETA] = state.beta
         p[PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
-        p[PARAMS_ROBUST] = 0 if state.scale is None else ROBUST_CODES[self.config.robust]
-        p[PARAMS_BANDS] = self.config.bands
+        p[PARAMS_ROBUST] = 0 if state.scale is None else self._robust_code
         p[PARAMS_GAINS:] = state.gains.reshape(-1)
 
     def _match_moments(self, level: _Level, ref: F32, cur: F32, state: _State) -> None:
@@ -239,7 +257,8 @@ class PlanarRegistration:
 
         state.gains[:] = 1.0
         state.beta = 0.0
-        self._fill_params(level, level.D @ state.G @ np.linalg.inv(level.D), state)
+        self._fill_level(level)
+        self._fill_state(level.D @ state.G @ level.D_inv, state)
         u0, v0, u1, v1 = level.bounds
         warped = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
         render_compensated(cur, self._params, warped, self.grid[0], self.grid[1])
@@ -256,67 +275,83 @@ class PlanarRegistration:
         ref: F32,
         cur: F32,
         state: _State,
+        tolerance: float,
         geometric: tuple[int, ...] = tuple(range(8)),
         photometric: bool = True,
     ) -> tuple[int, bool, str, bool]:
         """Gauss-Newton at one level over the sl(3) coordinates `geometric` (and the photometric unknowns unless
-        `photometric` is False); updates `state`; returns (iterations, converged, reason, fatal failure)."""
+        `photometric` is False) until an update moves the ROI corners by less than `tolerance` level pixels;
+        updates `state`; returns (iterations, converged, reason, fatal failure)."""
         from kernels.planar_step import planar_step
 
         cfg = self.config
         n, nt = self._n, self._n * (self._n + 1) // 2
-        D = level.D
-        D_inv = np.linalg.inv(D)
-        N = level.N
-        N_inv = np.linalg.inv(N)
-        corners = level.corners
-        sl_G, sl_S, sl_b = self.layout.slice("G"), self.layout.slice("S"), self.layout.slice("beta")
         free = np.ones(n, dtype=bool)
-        free[sl_G] = np.isin(np.arange(8), geometric)
-        free[sl_S] = free[sl_b] = photometric
+        free[self._sl_G] = np.isin(np.arange(8), geometric)
+        free[self._sl_S] = free[self._sl_b] = photometric
+        subset = None if free.all() else np.ix_(free, free)
+        limit = cfg.max_step_fraction * level.size
+        G_l = level.D @ state.G @ level.D_inv
+        self._fill_level(level)
+        outcome: tuple[int, bool, str, bool] = (cfg.max_iterations, False, (
+            f"max_iterations ({cfg.max_iterations}) reached at level {level.index}"), False)
         for it in range(1, cfg.max_iterations + 1):
-            G_l = D @ state.G @ D_inv
-            self._fill_params(level, G_l, state)
-            planar_step(ref, cur, self._params, self._work, self.grid[0], self.grid[1])
+            self._fill_state(G_l, state)
+            planar_step(ref, cur, level.warped, self._params, self._work, self.grid[0], self.grid[1])
             acc = self._work[: self._nacc].astype(np.float64)
             n_valid, n_inliers, sum_r2, median = acc[nt + n :]
             valid_ratio = n_valid / level.n_pixels
             if valid_ratio < cfg.min_valid_ratio:
-                return it, False, (f"diverged at level {level.index}: only {valid_ratio:.0%} of the ROI maps inside "
-                                   f"the current image (min_valid_ratio {cfg.min_valid_ratio:.0%})"), True
+                outcome = (it, False, (f"diverged at level {level.index}: only {valid_ratio:.0%} of the ROI maps "
+                                       f"inside the current image (min_valid_ratio {cfg.min_valid_ratio:.0%})"), True)
+                break
             state.residual_rms = math.sqrt(sum_r2 / n_valid)
             state.inlier_ratio = min(1.0, n_inliers / level.n_pixels) if state.scale is not None else 1.0
             state.scale = max(MAD_TO_SIGMA * median, cfg.scale_floor)
-            H = np.zeros((n, n))
-            H[self._triu] = acc[:nt]
-            H = (H + np.triu(H, 1).T)[np.ix_(free, free)]
-            g = acc[nt : nt + n][free]
-            d = np.diag(H)
-            if not np.all(d > 0):
-                return it, False, f"degenerate normal equations at level {level.index} (textureless ROI?)", True
-            Hn = H / np.sqrt(np.outer(d, d))
-            eig = np.linalg.eigvalsh(Hn)
-            if not eig[0] > DEGENERATE_RCOND * eig[-1]:
-                return it, False, (f"degenerate normal equations at level {level.index} (textureless ROI?): "
-                                   f"reciprocal condition {eig[0] / eig[-1]:.1e}"), True
+            H = acc[self._sym]
+            g = acc[nt : nt + n]
+            if subset is not None:
+                H, g = H[subset], g[free]
+            if it == 1:
+                degenerate = _degeneracy(H)
+                if degenerate:
+                    outcome = (it, False, f"degenerate normal equations at level {level.index} (textureless ROI?)"
+                                          f"{degenerate}", True)
+                    break
             delta = np.zeros(n)
-            delta[free] = np.linalg.solve(H, -g)
+            try:
+                delta[free] = np.linalg.solve(H, -g)
+            except np.linalg.LinAlgError:
+                delta[:] = np.nan
             if not np.all(np.isfinite(delta)):
-                return it, False, f"non-finite update at level {level.index}", True
-            before = _project(G_l, corners)
-            G_l_new = G_l @ N_inv @ sl3_exp(delta[sl_G]) @ N
-            step = float(np.max(np.abs(_project(G_l_new, corners) - before)))
-            limit = cfg.max_step_fraction * level.size
+                outcome = (it, False, f"non-finite update at level {level.index}", True)
+                break
+            before = _project(G_l, level.corners)
+            G_l_new = G_l @ level.N_inv @ sl3_exp(delta[self._sl_G]) @ level.N
+            step = float(np.max(np.abs(_project(G_l_new, level.corners) - before)))
             if not step <= limit:  # also catches NaN
                 delta = delta * (limit / step) if math.isfinite(step) else np.zeros_like(delta)
-                G_l_new = G_l @ N_inv @ sl3_exp(delta[sl_G]) @ N
-            state.G = sl3_normalize(D_inv @ G_l_new @ D)
-            state.gains = state.gains + delta[sl_S].reshape(self.grid)
-            state.beta = state.beta + float(delta[sl_b][0])
-            if step < cfg.step_tolerance_px:
-                return it, True, f"converged: last step {step:.1e} px < {cfg.step_tolerance_px:g} px", False
-        return cfg.max_iterations, False, (f"max_iterations ({cfg.max_iterations}) reached at level "
-                                           f"{level.index}"), False
+                G_l_new = G_l @ level.N_inv @ sl3_exp(delta[self._sl_G]) @ level.N
+            G_l = G_l_new
+            state.gains = state.gains + delta[self._sl_S].reshape(self.grid)
+            state.beta = state.beta + float(delta[self._sl_b][0])
+            if step < tolerance:
+                outcome = (it, True, f"converged: last step {step:.1e} px < {tolerance:g} px", False)
+                break
+        state.G = sl3_normalize(level.D_inv @ G_l @ level.D)
+        return outcome
+
+
+def _degeneracy(H: F64) -> str:
+    """Why the normal matrix `H` is too ill-conditioned to solve (empty when it is fine): a non-positive diagonal
+    or a reciprocal condition number of the diagonally scaled matrix below `DEGENERATE_RCOND`."""
+    d = np.diag(H)
+    if not np.all(d > 0):
+        return ": a parameter has no effect on the residuals"
+    eig = np.linalg.eigvalsh(H / np.sqrt(np.outer(d, d)))
+    if not eig[0] > DEGENERATE_RCOND * eig[-1]:
+        return f": reciprocal condition {eig[0] / eig[-1]:.1e}"
+    return ""
 
 
 def register(

@@ -1,5 +1,8 @@
 """Stateful planar tracker for a video stream: registers each frame warm-started from the last good estimate.
 
+Consecutive frames move little, so a frame is first solved on the finest `config.tracking_levels` pyramid levels
+only; when that does not converge it is solved again from the same state over the whole pyramid.
+
 The state is `G` (SL(3), reference → current full-image pixels), the gains `S`, the bias `β` (eq. (4)) and the
 robust scale σ. A frame whose registration converged replaces the state; any other frame leaves it unchanged and
 is reported with `converged = False` and the reason. `track` never raises and never returns a non-finite `G`.
@@ -44,7 +47,11 @@ class Tracker:
     def track(self, current: ArrayLike) -> RegistrationResult:
         """Register `current` from the last good state; on failure keep the state and report why."""
         try:
-            result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta, scale0=self._scale)
+            result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta, scale0=self._scale,
+                                       first_level=self._problem.config.tracking_levels - 1)
+            if not result.converged and len(result.iterations) < len(self._problem.levels):
+                result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta,
+                                           scale0=self._scale)
         except Exception as exc:  # the tracker's contract: report, never raise
             return self._failure(f"error: {type(exc).__name__}: {exc}")
         if not np.all(np.isfinite(result.G)):
