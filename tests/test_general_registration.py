@@ -155,6 +155,8 @@ def test_rho_survives_standstill_and_lost_target() -> None:
     first = tracker.track(render(saddle, T))
     assert first.converged and FLAG_NO_PARALLAX not in first.flags
     rho = tracker.rho_coeffs
+    for s in (0.6, 0.3, 0.1):  # back to the reference pose in steps a warm start follows
+        assert tracker.track(render(saddle, pose(so3_exp(s * np.array([-0.05, -0.15, 0.5])), s * T[:3, 3]))).converged
     for _ in range(3):  # at the reference pose: no translation
         still = tracker.track(reference)
         assert still.converged
