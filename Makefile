@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint bench clean certs
 
 setup:
 	@bash scripts/setup.sh
@@ -23,6 +23,11 @@ lint: setup
 
 bench: setup
 	$(VENV)/bin/ddvs bench
+
+# Development CA + per-role TLS certificates for Zenoh (docs/security.md); CERTS_DIR=... to choose where.
+CERTS_DIR ?= certs
+certs:
+	@bash scripts/make_dev_certs.sh $(CERTS_DIR)
 
 clean:
 	rm -rf $(VENV) .pytest_cache reports

@@ -1,0 +1,380 @@
+"""Zenoh transport security and access control for one robot's servo system (docs/security.md).
+
+Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everything else is refused):
+
+| role | publishes | subscribes | other |
+|---|---|---|---|
+| service | twist, status, config, state, reference | camera image + info | serves `servo/command`, holds token |
+| plant | camera image + info, joint states, ground truth | joint velocities, servo twist (free flyer) | |
+| bridge | joint velocities | servo twist, joint states | watches `servo/alive` token |
+| operator | | every topic | queries `servo/command`, watches `servo/alive` |
+| observer | | every topic (frames only if allowed) | watches `servo/alive` |
+
+The rules are generated from `Keys`/`TOPICS` (`access_control`) so that they follow the key table; each role is
+mapped to a Zenoh identity (`Identity`: TLS certificate common names and/or usernames of user/password
+authentication). The rules are enforced by the router that every client connects to (`router_config`); each role's
+client configuration comes from `client_config`. Flows are seen from the router: `ingress` = sent by that client,
+`egress` = delivered to it, so a publication needs the publisher's `put` (ingress) and the subscriber's `put` (egress).
+
+`warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS.
+Run `python -m ddvs_service.protocol.security OUT_DIR` to regenerate the example configurations of
+`configs/security/`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import json
+import logging
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ddvs_service.protocol.keys import TOPICS, Keys
+from ddvs_service.protocol.session import SessionConfig
+
+ROLES = ("service", "plant", "bridge", "operator", "observer")
+FRAME_TOPICS = ("camera_image", "servo_reference")
+SECURE_PROTOCOLS = ("tls", "quic")
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
+
+
+@dataclass(frozen=True)
+class Grants:
+    """What one role may do, as entries of `TOPICS`: `publish`/`subscribe` samples, `serve`/`query` queryables,
+    hold (`tokens`) or `watch` liveliness tokens."""
+
+    publish: tuple[str, ...] = ()
+    subscribe: tuple[str, ...] = ()
+    serve: tuple[str, ...] = ()
+    query: tuple[str, ...] = ()
+    tokens: tuple[str, ...] = ()
+    watch: tuple[str, ...] = ()
+
+    def names(self) -> set[str]:
+        return {*self.publish, *self.subscribe, *self.serve, *self.query, *self.tokens, *self.watch}
+
+
+_SAMPLE_TOPICS = tuple(n for n, spec in TOPICS.items() if n not in ("servo_command", "liveliness"))
+
+ROLE_GRANTS: dict[str, Grants] = {
+    "service": Grants(
+        publish=("servo_twist", "servo_status", "servo_config", "servo_state", "servo_reference"),
+        subscribe=("camera_image", "camera_info"),
+        serve=("servo_command",),
+        tokens=("liveliness",),
+    ),
+    "plant": Grants(
+        publish=("camera_image", "camera_info", "arm_joint_states", "arm_ground_truth"),
+        subscribe=("arm_joint_velocity", "servo_twist"),
+    ),
+    "bridge": Grants(
+        publish=("arm_joint_velocity",), subscribe=("servo_twist", "arm_joint_states"), watch=("liveliness",)
+    ),
+    "operator": Grants(subscribe=_SAMPLE_TOPICS, query=("servo_command",), watch=("liveliness",)),
+    "observer": Grants(subscribe=_SAMPLE_TOPICS, watch=("liveliness",)),
+}
+
+
+@dataclass(frozen=True)
+class Identity:
+    """How the router recognises a role's sessions: certificate common names (mutual TLS) and/or usernames
+    (user/password authentication). Names within a list are alternatives; both lists given means both must match
+    (Zenoh's subject semantics)."""
+
+    cert_common_names: tuple[str, ...] = ()
+    usernames: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.cert_common_names and not self.usernames:
+            raise ValueError("Identity: expected at least one certificate common name or username (an empty "
+                             "identity would match every session)")
+
+
+def certificate_identities(prefix: str = "") -> dict[str, Identity]:
+    """Each role recognised by its certificate's common name `<prefix><role>` (what `make_dev_certs.sh` issues)."""
+    return {role: Identity(cert_common_names=(f"{prefix}{role}",)) for role in ROLES}
+
+
+def password_identities(prefix: str = "") -> dict[str, Identity]:
+    """Each role recognised by its user/password username `<prefix><role>`."""
+    return {role: Identity(usernames=(f"{prefix}{role}",)) for role in ROLES}
+
+
+def _rule(rule_id: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": list(messages),
+            "key_exprs": sorted(set(keys))}
+
+
+def _role_rules(role: str, grants: Grants, keys: Keys) -> list[dict[str, Any]]:
+    """The allow rules of one role (ids `<role>/<what>`), flows seen from the router."""
+    k = keys.key
+    pub, sub = [k(n) for n in grants.publish], [k(n) for n in grants.subscribe]
+    serve, query = [k(n) for n in grants.serve], [k(n) for n in grants.query]
+    tokens, watch = [k(n) for n in grants.tokens], [k(n) for n in grants.watch]
+    candidates = [
+        ("publish", "ingress", ["put"], pub),
+        ("publish-interest", "egress", ["declare_subscriber"], pub),
+        ("subscribe", "ingress", ["declare_subscriber"], sub),
+        ("subscribe-deliver", "egress", ["put"], sub),
+        ("serve", "ingress", ["declare_queryable", "reply"], serve),
+        ("serve-deliver", "egress", ["query"], serve),
+        ("query", "ingress", ["query"], query),
+        ("query-deliver", "egress", ["reply", "declare_queryable"], query),
+        ("token", "ingress", ["liveliness_token"], tokens),
+        ("token-interest", "egress", ["declare_liveliness_subscriber", "liveliness_query"], tokens),
+        ("watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], watch),
+        ("watch-deliver", "egress", ["liveliness_token"], watch),
+    ]
+    return [_rule(f"{role}/{what}", flow, msgs, ks) for what, flow, msgs, ks in candidates if ks]
+
+
+def role_grants(observers_read_frames: bool = True) -> dict[str, Grants]:
+    """`ROLE_GRANTS`, with camera frames and the reference image withheld from observers unless allowed."""
+    if observers_read_frames:
+        return dict(ROLE_GRANTS)
+    observer = ROLE_GRANTS["observer"]
+    subscribe = tuple(n for n in observer.subscribe if n not in FRAME_TOPICS)
+    return {**ROLE_GRANTS, "observer": Grants(subscribe=subscribe, watch=observer.watch)}
+
+
+def access_control(
+    keys: Keys, identities: Mapping[str, Identity], observers_read_frames: bool = True
+) -> dict[str, Any]:
+    """The router's `access_control` section: deny by default, allow rules per role of `identities` (roles absent
+    from `identities` get nothing). Raises `ValueError` for an unknown role."""
+    unknown = set(identities) - set(ROLES)
+    if unknown:
+        raise ValueError(f"unknown roles {sorted(unknown)}; expected some of {', '.join(ROLES)}")
+    grants = role_grants(observers_read_frames)
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for role in ROLES:
+        if role not in identities:
+            continue
+        ident = identities[role]
+        subject: dict[str, Any] = {"id": f"role:{role}"}
+        if ident.cert_common_names:
+            subject["cert_common_names"] = list(ident.cert_common_names)
+        if ident.usernames:
+            subject["usernames"] = list(ident.usernames)
+        role_rules = _role_rules(role, grants[role], keys)
+        rules.extend(role_rules)
+        subjects.append(subject)
+        policies.append({"id": f"policy:{role}", "rules": [r["id"] for r in role_rules], "subjects": [subject["id"]]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """PEM files of one node: the CA that signs every peer's certificate (`ca`), and this node's own certificate and
+    private key (`certificate`, `key`; required for listening and for mutual TLS)."""
+
+    ca: Path
+    certificate: Path | None = None
+    key: Path | None = None
+
+    @classmethod
+    def for_role(cls, cert_dir: str | Path, role: str) -> TlsFiles:
+        """The files `scripts/make_dev_certs.sh DIR` writes for `role` (`DIR/ca.pem`, `DIR/<role>.pem|.key`)."""
+        d = Path(cert_dir)
+        return cls(ca=d / "ca.pem", certificate=d / f"{role}.pem", key=d / f"{role}.key")
+
+    def section(self, mtls: bool, listening: bool) -> dict[str, Any]:
+        """The `transport/link/tls` section (paths as given; Zenoh resolves them against its working directory)."""
+        out: dict[str, Any] = {"root_ca_certificate": str(self.ca), "enable_mtls": mtls}
+        if mtls or listening:
+            if self.certificate is None or self.key is None:
+                raise ValueError(f"TLS {'mutual authentication' if mtls else 'listening'} needs this node's "
+                                 "certificate and key; expected TlsFiles(certificate=..., key=...)")
+            if listening:
+                out.update(listen_certificate=str(self.certificate), listen_private_key=str(self.key))
+            if mtls:
+                out.update(connect_certificate=str(self.certificate), connect_private_key=str(self.key))
+        return out
+
+
+def router_config(
+    keys: Keys,
+    identities: Mapping[str, Identity],
+    listen: Sequence[str],
+    tls: TlsFiles | None = None,
+    mtls: bool = True,
+    password_file: str | Path | None = None,
+    observers_read_frames: bool = True,
+) -> dict[str, Any]:
+    """The hub router's Zenoh configuration: `listen` endpoints (e.g. `tls/localhost:7447`), TLS (mutual when `mtls`),
+    user/password authentication when `password_file` (lines `user:password`) is given, and the access control of
+    `access_control`. Multicast scouting is off; clients reach the robot only through this router."""
+    config: dict[str, Any] = {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "access_control": access_control(keys, identities, observers_read_frames),
+    }
+    transport: dict[str, Any] = {}
+    if tls is not None:
+        transport["link"] = {"tls": tls.section(mtls=mtls, listening=True)}
+    if password_file is not None:
+        transport["auth"] = {"usrpwd": {"dictionary_file": str(password_file)}}
+    if transport:
+        config["transport"] = transport
+    return config
+
+
+def client_config(
+    role: str,
+    router: Sequence[str],
+    tls: TlsFiles | None = None,
+    mtls: bool = True,
+    credentials: tuple[str, str] | None = None,
+) -> dict[str, Any]:
+    """The Zenoh configuration of a `role`'s node as a client of the hub router at `router` endpoints: TLS with
+    this role's certificate (mutual TLS when `mtls`) and/or user/password `credentials = (user, password)`."""
+    if role not in ROLES:
+        raise ValueError(f"unknown role {role!r}; expected one of {', '.join(ROLES)}")
+    if not router:
+        raise ValueError(f"client_config({role!r}): expected at least one router endpoint, e.g. 'tls/localhost:7447'")
+    config: dict[str, Any] = {
+        "mode": "client",
+        "connect": {"endpoints": list(router)},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+    transport: dict[str, Any] = {}
+    if tls is not None:
+        transport["link"] = {"tls": tls.section(mtls=mtls, listening=False)}
+    if credentials is not None:
+        user, password = credentials
+        transport["auth"] = {"usrpwd": {"user": user, "password": password}}
+    if transport:
+        config["transport"] = transport
+    return config
+
+
+def render_json5(config: Mapping[str, Any], comment: str) -> str:
+    """A configuration as a JSON5 file (JSON with a `//` comment header), for `zenoh.Config.from_file`."""
+    header = "".join(f"// {line}\n" if line else "//\n" for line in comment.splitlines())
+    return header + json.dumps(config, indent=2) + "\n"
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """One Zenoh locator `<protocol>/<address>[?metadata][#config]`, reduced to what security checks need."""
+
+    protocol: str
+    host: str
+    raw: str = field(compare=False)
+
+    @classmethod
+    def parse(cls, endpoint: str) -> Endpoint:
+        protocol, sep, rest = endpoint.partition("/")
+        if not sep or not protocol or not rest:
+            raise ValueError(f"endpoint {endpoint!r}: expected '<protocol>/<address>', e.g. 'tls/localhost:7447'")
+        address = rest.split("#", 1)[0].split("?", 1)[0]
+        if address.startswith("["):
+            host = address[1:].split("]", 1)[0]
+        else:
+            host = address.rsplit(":", 1)[0] if ":" in address else address
+        return cls(protocol.lower(), host, endpoint)
+
+    @property
+    def loopback(self) -> bool:
+        """True for local-only transports and loopback addresses (`localhost`, 127.0.0.0/8, ::1)."""
+        if self.protocol in LOCAL_PROTOCOLS or self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False  # a host name other than localhost may resolve to any interface
+
+    @property
+    def secure(self) -> bool:
+        return self.protocol in SECURE_PROTOCOLS
+
+
+def listen_endpoints(session_config: SessionConfig) -> list[str]:
+    """The endpoints a session with these settings listens on, as Zenoh resolves them (file, fields, overrides and
+    Zenoh's defaults, e.g. `tcp/[::]:0` for a peer with no `listen`)."""
+    config = session_config.to_zenoh_config()
+    value = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(value, dict):  # Zenoh's per-mode form {router: [...], peer: [...], client: [...]}
+        value = value.get(session_config.mode, [])
+    return [str(e) for e in value or []]
+
+
+def insecure_endpoints(session_config: SessionConfig) -> list[str]:
+    """Listen endpoints reachable beyond this host (not loopback) that do not use TLS."""
+    return [e for e in listen_endpoints(session_config) if not (Endpoint.parse(e).loopback or Endpoint.parse(e).secure)]
+
+
+def warn_if_insecure(session_config: SessionConfig, logger: logging.Logger) -> list[str]:
+    """Log one warning (structured fields `endpoint`, `mode`) per listen endpoint beyond loopback without TLS; return
+    those endpoints (empty: nothing to warn about). Plain TCP is for loopback-only demos (docs/security.md)."""
+    bad = insecure_endpoints(session_config)
+    for endpoint in bad:
+        logger.warning(
+            "listening beyond loopback without TLS: any host that reaches this address can join the Zenoh network; "
+            "use a tls/ endpoint with access control (docs/security.md) or a loopback address",
+            extra={"fields": {"endpoint": endpoint, "mode": session_config.mode}},
+        )
+    return bad
+
+
+def write_examples(out_dir: str | Path, keys: Keys, cert_dir: str, router: str) -> list[Path]:
+    """Write the example configurations of `configs/security/`: `router-mtls.json5` (mutual TLS, identities by
+    certificate), `router-password.json5` (server TLS + user/password), and per role `<role>-mtls.json5` and
+    `<role>-password.json5` client configurations. Returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, tuple[dict[str, Any], str]] = {}
+    listen = [router]
+    files["router-mtls.json5"] = (
+        router_config(keys, certificate_identities(), listen, TlsFiles.for_role(cert_dir, "router"), mtls=True),
+        "Hub router: mutual TLS, each role recognised by its certificate's common name, deny-by-default access "
+        "control.",
+    )
+    files["router-password.json5"] = (
+        router_config(keys, password_identities(), listen, TlsFiles.for_role(cert_dir, "router"), mtls=False,
+                      password_file=f"{cert_dir}/passwords.txt"),
+        "Hub router: server-side TLS, each role recognised by its user/password username (dictionary file of "
+        "'user:password' lines), deny-by-default access control.",
+    )
+    for role in ROLES:
+        files[f"{role}-mtls.json5"] = (
+            client_config(role, [router], TlsFiles.for_role(cert_dir, role), mtls=True),
+            f"The {role}'s node: client of the hub router, mutual TLS with the '{role}' certificate.",
+        )
+        files[f"{role}-password.json5"] = (
+            client_config(role, [router], TlsFiles(ca=Path(cert_dir) / "ca.pem"), mtls=False,
+                          credentials=(role, f"CHANGE-ME-{role}")),
+            f"The {role}'s node: client of the hub router, server-side TLS and user/password '{role}'.",
+        )
+    written = []
+    for name, (config, comment) in files.items():
+        path = out / name
+        header = f"{comment}\nGenerated by `python -m ddvs_service.protocol.security` for {keys.base}; do not edit."
+        path.write_text(render_json5(config, header), encoding="utf-8")
+        written.append(path)
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="write the example Zenoh security configurations")
+    parser.add_argument("out_dir", help="directory to write (configs/security)")
+    parser.add_argument("--prefix", default="ddvs")
+    parser.add_argument("--robot", default="robot0")
+    parser.add_argument("--certs", default="certs", help="directory of make_dev_certs.sh (as the nodes see it)")
+    parser.add_argument("--router", default="tls/localhost:7447", help="the hub router's endpoint")
+    args = parser.parse_args(argv)
+    for path in write_examples(args.out_dir, Keys(args.prefix, args.robot), args.certs, args.router):
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,408 @@
+"""Transport security and access control with real Zenoh sessions on loopback: a Python router with the generated
+deny-by-default rules as the hub, one client session per role, TLS certificates made by `scripts/make_dev_certs.sh`.
+
+Every "refused" check is paired with an authorised control in the same network, so a test cannot pass because
+nothing was delivered at all.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+from conftest import free_port
+
+from ddvs_service.protocol import Keys, SessionConfig
+from ddvs_service.protocol.security import (
+    ROLES,
+    Identity,
+    TlsFiles,
+    certificate_identities,
+    client_config,
+    password_identities,
+    render_json5,
+    router_config,
+    warn_if_insecure,
+    write_examples,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "scripts" / "make_dev_certs.sh"
+KEYS = Keys("ddvs", "ur5")
+SETTLE_S = 0.4  # declarations propagating through the router
+WAIT_S = 0.6
+
+
+def _zenoh_config(config: dict[str, Any]) -> zenoh.Config:
+    out = zenoh.Config()
+    for key, value in config.items():
+        out.insert_json5(key, json.dumps(value))
+    return out
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("certs")
+    subprocess.run(["bash", str(SCRIPT), str(directory)], check=True, capture_output=True)
+    return directory
+
+
+@pytest.fixture(scope="module")
+def rogue_certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Certificates with the right common names from another CA (an attacker's)."""
+    directory = tmp_path_factory.mktemp("rogue")
+    subprocess.run(["bash", str(SCRIPT), str(directory)], check=True, capture_output=True)
+    return directory
+
+
+class Network:
+    """A hub router (TLS on a free loopback port) and the client sessions opened through it; all closed on exit."""
+
+    def __init__(self, router: dict[str, Any], endpoint: str) -> None:
+        self.endpoint = endpoint
+        self.sessions: list[zenoh.Session] = [zenoh.open(_zenoh_config(router))]
+
+    def open(self, config: dict[str, Any]) -> zenoh.Session:
+        session = zenoh.open(_zenoh_config(config))
+        self.sessions.append(session)
+        return session
+
+    def close(self) -> None:
+        for session in reversed(self.sessions):
+            session.close()
+
+
+@contextmanager
+def network(router_for: Callable[[str], dict[str, Any]]) -> Iterator[Network]:
+    endpoint = f"tls/localhost:{free_port()}"
+    net = Network(router_for(endpoint), endpoint)
+    try:
+        yield net
+    finally:
+        net.close()
+
+
+def mtls_network(certs: Path, observers_read_frames: bool = True) -> Any:
+    return network(lambda ep: router_config(KEYS, certificate_identities(), [ep], TlsFiles.for_role(certs, "router"),
+                                            mtls=True, observers_read_frames=observers_read_frames))
+
+
+def mtls_client(net: Network, certs: Path, role: str) -> zenoh.Session:
+    return net.open(client_config(role, [net.endpoint], TlsFiles.for_role(certs, role), mtls=True))
+
+
+class Inbox:
+    """A callback subscriber collecting payloads (the callback only appends: it never blocks the session)."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.payloads: list[bytes] = []
+        self._sub = session.declare_subscriber(key, lambda s: self.payloads.append(s.payload.to_bytes()))
+
+    def wait_for(self, payload: bytes, timeout: float = WAIT_S) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if payload in self.payloads:
+                return True
+            time.sleep(0.01)
+        return payload in self.payloads
+
+
+def _put_until(session: zenoh.Session, key: str, payload: bytes, inbox: Inbox, timeout: float = 3.0) -> bool:
+    """Publish every 50 ms until the inbox has it (authorised paths: waits out declaration propagation)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        session.put(key, payload)
+        if inbox.wait_for(payload, 0.05):
+            return True
+    return False
+
+
+class CommandServer:
+    """A queryable on `servo/command` that records every query it is handed and replies `{"ok": true}`."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.received: list[bytes] = []
+        self._lock = threading.Lock()
+        self._q = session.declare_queryable(KEYS.servo_command, self._on_query)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self._lock:
+            self.received.append(query.payload.to_bytes() if query.payload is not None else b"")
+        query.reply(query.key_expr, b'{"ok": true}')
+
+
+def _replies(session: zenoh.Session, payload: bytes, timeout: float = 1.0) -> list[bytes]:
+    out = []
+    for reply in session.get(KEYS.servo_command, payload=payload, timeout=timeout):
+        if reply.ok is not None:
+            out.append(reply.ok.payload.to_bytes())
+    return out
+
+
+# --- certificates ---------------------------------------------------------------------------------------------------
+
+
+def test_make_dev_certs_issues_verifiable_role_certificates_and_is_idempotent(tmp_path: Path) -> None:
+    first = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
+    assert "created" in first.stdout
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    second = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
+    assert second.stdout == ""
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    for role in ("router", *ROLES):
+        pem = tmp_path / f"{role}.pem"
+        subprocess.run(["openssl", "verify", "-CAfile", str(tmp_path / "ca.pem"), str(pem)], check=True,
+                       capture_output=True)
+        text = subprocess.run(["openssl", "x509", "-in", str(pem), "-noout", "-subject", "-ext", "subjectAltName"],
+                              check=True, capture_output=True, text=True).stdout
+        assert f"CN = {role}" in text or f"CN={role}" in text
+        assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text
+    (tmp_path / "bridge.pem").unlink()  # a missing certificate is re-issued, the others are kept
+    third = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
+    assert third.stdout.strip() == f"created {tmp_path}/bridge.pem (CN=bridge)"
+    assert (tmp_path / "ca.pem").read_bytes() == before["ca.pem"]
+
+
+def test_make_dev_certs_without_directory_explains_usage() -> None:
+    result = subprocess.run(["bash", str(SCRIPT)], capture_output=True, text=True)
+    assert result.returncode == 2 and "usage:" in result.stderr
+
+
+# --- mutual TLS + access control ------------------------------------------------------------------------------------
+
+
+def test_authorised_roles_reach_each_other(certs: Path) -> None:
+    with mtls_network(certs) as net:
+        service, plant, bridge, operator, observer = (mtls_client(net, certs, r) for r in ROLES)
+        plant_commands = Inbox(plant, KEYS.arm_joint_velocity)
+        bridge_twists = Inbox(bridge, KEYS.servo_twist)
+        service_frames = Inbox(service, KEYS.camera_image)
+        observer_status = Inbox(observer, KEYS.servo_status)
+        server = CommandServer(service)
+        time.sleep(SETTLE_S)
+        assert _put_until(bridge, KEYS.arm_joint_velocity, b"qd", plant_commands)
+        assert _put_until(service, KEYS.servo_twist, b"twist", bridge_twists)
+        assert _put_until(plant, KEYS.camera_image, b"frame", service_frames)
+        assert _put_until(service, KEYS.servo_status, b"status", observer_status)
+        assert _replies(operator, b"get_state") == [b'{"ok": true}']
+        assert server.received == [b"get_state"]
+
+
+def test_liveliness_token_of_the_service_is_seen_by_bridge_and_observer(certs: Path) -> None:
+    with mtls_network(certs) as net:
+        service, bridge, observer = (mtls_client(net, certs, r) for r in ("service", "bridge", "observer"))
+        token = service.liveliness().declare_token(KEYS.liveliness)
+        time.sleep(SETTLE_S)
+        for watcher in (bridge, observer):
+            alive = [str(r.ok.key_expr) for r in watcher.liveliness().get(KEYS.liveliness, timeout=1.0)
+                     if r.ok is not None]
+            assert alive == [KEYS.liveliness]
+        token.undeclare()
+
+
+@pytest.mark.parametrize("intruder", ["service", "operator", "observer"])
+def test_only_the_bridge_can_send_joint_velocities(certs: Path, intruder: str) -> None:
+    with mtls_network(certs) as net:
+        plant = mtls_client(net, certs, "plant")
+        bridge = mtls_client(net, certs, "bridge")
+        attacker = mtls_client(net, certs, intruder)
+        commands = Inbox(plant, KEYS.arm_joint_velocity)
+        time.sleep(SETTLE_S)
+        assert _put_until(bridge, KEYS.arm_joint_velocity, b"authorised", commands)
+        for _ in range(5):
+            attacker.put(KEYS.arm_joint_velocity, b"forged")
+        time.sleep(WAIT_S)
+        assert b"forged" not in commands.payloads
+
+
+@pytest.mark.parametrize("intruder", ["bridge", "operator", "observer"])
+def test_only_the_service_can_send_twists(certs: Path, intruder: str) -> None:
+    """The plant (free flyer) subscribes twists; a session's own puts reach its own subscribers locally, so the
+    subscriber is never the intruder."""
+    with mtls_network(certs) as net:
+        service = mtls_client(net, certs, "service")
+        attacker = mtls_client(net, certs, intruder)
+        twists = Inbox(mtls_client(net, certs, "plant"), KEYS.servo_twist)
+        time.sleep(SETTLE_S)
+        assert _put_until(service, KEYS.servo_twist, b"authorised", twists)
+        for _ in range(5):
+            attacker.put(KEYS.servo_twist, b"forged")
+        time.sleep(WAIT_S)
+        assert b"forged" not in twists.payloads
+
+
+@pytest.mark.parametrize("intruder", ["service", "plant", "bridge", "observer"])
+def test_only_the_operator_can_call_the_command_queryable(certs: Path, intruder: str) -> None:
+    with mtls_network(certs) as net:
+        server = CommandServer(mtls_client(net, certs, "service"))
+        operator = mtls_client(net, certs, "operator")
+        attacker = mtls_client(net, certs, intruder)
+        time.sleep(SETTLE_S)
+        assert _replies(attacker, b"forged set_reference", timeout=0.5) == []
+        assert _replies(operator, b"authorised") == [b'{"ok": true}']
+        assert server.received == [b"authorised"]
+
+
+def test_only_the_service_can_serve_the_command_queryable(certs: Path) -> None:
+    """A rogue queryable (a valid identity that is not the service) never sees the operator's commands."""
+    with mtls_network(certs) as net:
+        rogue = CommandServer(mtls_client(net, certs, "plant"))
+        server = CommandServer(mtls_client(net, certs, "service"))
+        operator = mtls_client(net, certs, "operator")
+        time.sleep(SETTLE_S)
+        assert _replies(operator, b"set_config") == [b'{"ok": true}']
+        assert server.received == [b"set_config"] and rogue.received == []
+
+
+def test_observers_can_be_denied_frames(certs: Path) -> None:
+    with mtls_network(certs, observers_read_frames=False) as net:
+        plant, service, observer = (mtls_client(net, certs, r) for r in ("plant", "service", "observer"))
+        served = Inbox(service, KEYS.camera_image)
+        watched = Inbox(observer, KEYS.camera_image)
+        status = Inbox(observer, KEYS.servo_status)
+        time.sleep(SETTLE_S)
+        assert _put_until(plant, KEYS.camera_image, b"frame", served)
+        assert _put_until(service, KEYS.servo_status, b"status", status)  # observers still see the status
+        time.sleep(WAIT_S)
+        assert watched.payloads == []
+
+
+def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_certs: Path) -> None:
+    with mtls_network(certs) as net:
+        port = net.endpoint.rsplit(":", 1)[1]
+        attempts = {
+            "no certificate": client_config("operator", [net.endpoint], TlsFiles(ca=certs / "ca.pem"), mtls=False),
+            "certificate of another CA": client_config(
+                "operator", [net.endpoint], TlsFiles(certs / "ca.pem", rogue_certs / "operator.pem",
+                                                     rogue_certs / "operator.key")),
+            "plain TCP": client_config("operator", [f"tcp/127.0.0.1:{port}"]),
+        }
+        for what, config in attempts.items():
+            with pytest.raises(zenoh.ZError, match="Unable to connect"):
+                net.open(config)
+                pytest.fail(f"a client with {what} connected")
+        assert _replies(mtls_client(net, certs, "operator"), b"x", timeout=0.3) == []  # the router itself still runs
+
+
+# --- user/password over server-side TLS -----------------------------------------------------------------------------
+
+
+def test_password_identities_wrong_credentials_refused_and_roles_enforced(certs: Path, tmp_path: Path) -> None:
+    passwords = tmp_path / "passwords.txt"
+    passwords.write_text("".join(f"{role}:pw-{role}\n" for role in ROLES), encoding="utf-8")
+    tls_router = TlsFiles.for_role(certs, "router")
+    with network(lambda ep: router_config(KEYS, password_identities(), [ep], tls_router, mtls=False,
+                                          password_file=passwords)) as net:
+        ca_only = TlsFiles(ca=certs / "ca.pem")
+
+        def client(role: str, user: str, password: str) -> zenoh.Session:
+            return net.open(client_config(role, [net.endpoint], ca_only, mtls=False, credentials=(user, password)))
+
+        for user, password in (("bridge", "wrong"), ("mallory", "pw-bridge")):
+            with pytest.raises(zenoh.ZError, match="Unable to connect"):
+                client("bridge", user, password)
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            net.open(client_config("bridge", [net.endpoint], ca_only, mtls=False))  # anonymous
+        plant = client("plant", "plant", "pw-plant")
+        bridge = client("bridge", "bridge", "pw-bridge")
+        observer = client("observer", "observer", "pw-observer")
+        commands = Inbox(plant, KEYS.arm_joint_velocity)
+        time.sleep(SETTLE_S)
+        assert _put_until(bridge, KEYS.arm_joint_velocity, b"authorised", commands)
+        observer.put(KEYS.arm_joint_velocity, b"forged")
+        time.sleep(WAIT_S)
+        assert b"forged" not in commands.payloads
+
+
+# --- generated configurations ---------------------------------------------------------------------------------------
+
+
+def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
+    acl = router_config(KEYS, certificate_identities(), ["tls/localhost:7447"])["access_control"]
+    assert acl["default_permission"] == "deny" and acl["enabled"] is True
+    all_keys = {KEYS.key(name) for name in ("camera_image", "camera_info", "servo_twist", "servo_status",
+                                            "servo_config", "servo_state", "servo_reference", "servo_command",
+                                            "arm_joint_states", "arm_joint_velocity", "arm_ground_truth",
+                                            "liveliness")}
+    writers: dict[tuple[str, str], set[str]] = {}
+    for rule in acl["rules"]:
+        assert rule["permission"] == "allow" and set(rule["key_exprs"]) <= all_keys
+        role = rule["id"].split("/")[0]
+        if rule["flows"] == ["ingress"]:
+            for message in rule["messages"]:
+                for key in rule["key_exprs"]:
+                    writers.setdefault((message, key), set()).add(role)
+    assert writers[("put", KEYS.servo_twist)] == {"service"}
+    assert writers[("put", KEYS.arm_joint_velocity)] == {"bridge"}
+    assert writers[("put", KEYS.camera_image)] == writers[("put", KEYS.arm_joint_states)] == {"plant"}
+    assert writers[("query", KEYS.servo_command)] == {"operator"}
+    assert writers[("declare_queryable", KEYS.servo_command)] == {"service"}
+    assert not any("observer" in roles for (message, _), roles in writers.items()
+                   if message not in ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"))
+    other = Keys("ddvs", "other_robot")
+    assert not any(key.startswith(other.base) for rule in acl["rules"] for key in rule["key_exprs"])
+
+
+def test_identity_and_role_errors_say_what_was_expected() -> None:
+    with pytest.raises(ValueError, match="at least one certificate common name or username"):
+        Identity()
+    with pytest.raises(ValueError, match="unknown roles"):
+        router_config(KEYS, {"admin": Identity(usernames=("root",))}, ["tls/localhost:7447"])
+    with pytest.raises(ValueError, match="unknown role"):
+        client_config("admin", ["tls/localhost:7447"])
+    with pytest.raises(ValueError, match="certificate and key"):
+        client_config("operator", ["tls/localhost:7447"], TlsFiles(ca=Path("ca.pem")), mtls=True)
+
+
+def test_example_configurations_are_generated_and_load_in_zenoh(tmp_path: Path) -> None:
+    shipped = REPO / "configs" / "security"
+    written = write_examples(tmp_path, Keys("ddvs", "robot0"), "certs", "tls/localhost:7447")
+    for path in written:
+        assert (shipped / path.name).read_text(encoding="utf-8") == path.read_text(encoding="utf-8"), (
+            f"configs/security/{path.name} is out of date: run "
+            "`python -m ddvs_service.protocol.security configs/security`")
+        zenoh.Config.from_file(str(path))  # valid JSON5 with keys Zenoh knows
+    assert render_json5({"mode": "client"}, "a\nb").startswith("// a\n// b\n{")
+
+
+# --- warnings -------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("listen", "mode", "warned"),
+    [
+        (["tcp/127.0.0.1:7447"], "peer", []),
+        (["tcp/localhost:7447", "tcp/[::1]:7448"], "router", []),
+        (["tcp/0.0.0.0:7447"], "peer", ["tcp/0.0.0.0:7447"]),
+        (["tcp/192.168.1.10:7447", "tls/0.0.0.0:7448"], "router", ["tcp/192.168.1.10:7447"]),
+        (["udp/[::]:7447#iface=eth0"], "peer", ["udp/[::]:7447#iface=eth0"]),
+        (["tls/[::]:7447", "quic/0.0.0.0:7448"], "router", []),
+        ([], "peer", ["tcp/[::]:0"]),  # Zenoh's default for a peer listens on every interface
+        ([], "client", []),
+    ],
+)
+def test_warn_if_insecure(listen: list[str], mode: str, warned: list[str], caplog: pytest.LogCaptureFixture) -> None:
+    connect = ["tcp/127.0.0.1:7447"] if mode == "client" else []
+    config = SessionConfig(mode=mode, listen=listen, connect=connect)  # type: ignore[arg-type]
+    logger = logging.getLogger("test.security")
+    with caplog.at_level(logging.WARNING, logger="test.security"):
+        assert warn_if_insecure(config, logger) == warned
+    assert [r.fields["endpoint"] for r in caplog.records] == warned  # type: ignore[attr-defined]
+    assert all("without TLS" in r.getMessage() for r in caplog.records)
+
+
+def test_warn_if_insecure_reads_the_zenoh_config_file(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "router.json5"
+    path.write_text(render_json5({"mode": "router", "listen": {"endpoints": ["tcp/0.0.0.0:7447"]}}, "x"))
+    with caplog.at_level(logging.WARNING):
+        bad = warn_if_insecure(SessionConfig(mode="router", zenoh_config=path), logging.getLogger("t"))
+    assert bad == ["tcp/0.0.0.0:7447"]
