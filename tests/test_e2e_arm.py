@@ -10,6 +10,7 @@ paper's 417 for DVS and 309 for the decoupled DVS).
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,7 @@ MAX_ROTATION_DEG = 0.3
 ])
 def test_both_laws_converge_to_the_reference_pose(law, template):
     out = REPORTS / f"{law}_{template[0]}x{template[1]}"
+    shutil.rmtree(out, ignore_errors=True)
     settings = ArmRunSettings(out_dir=out, law=law, template=template, clock="lockstep", max_images=1500,
                               time_limit=240.0, robot=f"e2e_{law}_{template[0]}")
     result = run_arm(settings)
