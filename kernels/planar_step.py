@@ -107,6 +107,65 @@ def gain_at(params: ti.template(), u: ti.f32, v: ti.f32, grid_rows: ti.template(
 
 
 @ti.func
+def row_sums(mxx, mxy, myy, cross, photo, gb, ge, stats, dv: ti.f32, s: ti.f32):
+    """One row's contribution to the accumulator (upper triangle of `JᵀWJ`, `JᵀWr`, statistics) from its moments.
+
+    In a row `dv = v − cy` is constant, so the geometric Jacobian is `J_geo = C(dv) · β` with the 5 per-pixel terms
+    `β = [gx, gy, gx du, gy du, gx du²]` (`du = u − cx`) and the 8×5 matrix `C` below (rows: the `J[0…7]` of the
+    module docstring). The row's `Σ w β βᵀ` needs only 12 moments (`mxx`, `mxy`, `myy`); the photometric columns
+    `E = [φ_k Iw, 1]` enter through `cross = Σ w E βᵀ`, `photo = Σ w E Eᵀ`, and `JᵀWr` through `gb = Σ w r β`,
+    `ge = Σ w r E`. Same sums as the per-pixel outer product, with a third of the per-pixel multiply-adds.
+    """
+    M = ti.static(ge.n)
+    P = ti.static(N_GEOMETRIC + M)
+    NT = ti.static(P * (P + 1) // 2)
+    bb = ti.Matrix(
+        [
+            [mxx[0], mxy[0], mxx[1], mxy[1], mxx[2]],
+            [mxy[0], myy[0], mxy[1], myy[1], mxy[2]],
+            [mxx[1], mxy[1], mxx[2], mxy[2], mxx[3]],
+            [mxy[1], myy[1], mxy[2], myy[2], mxy[3]],
+            [mxx[2], mxy[2], mxx[3], mxy[3], mxx[4]],
+        ]
+    )
+    si = 1.0 / s
+    C = ti.Matrix(
+        [
+            [s, 0.0, 0.0, 0.0, 0.0],
+            [0.0, s, 0.0, 0.0, 0.0],
+            [-dv, 0.0, 0.0, 1.0, 0.0],
+            [0.0, -dv, 1.0, 0.0, 0.0],
+            [0.0, 3.0 * dv, 3.0, 0.0, 0.0],
+            [dv, 0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, -dv * si, -si],
+            [0.0, -dv * dv * si, -dv * si, 0.0, 0.0],
+        ]
+    )
+    hg = C @ bb @ C.transpose()
+    hc = C @ cross.transpose()  # 8×M
+    g_geo = C @ gb
+    out = ti.Vector.zero(ti.f32, NT + P + N_STATS)
+    for a in ti.static(range(P)):
+        for c in ti.static(range(a, P)):
+            idx = ti.static(a * P - a * (a - 1) // 2 + c - a)
+            if ti.static(c < N_GEOMETRIC):
+                out[idx] = hg[a, c]
+            elif ti.static(a < N_GEOMETRIC):
+                out[idx] = hc[a, c - N_GEOMETRIC]
+            else:
+                e = ti.static(a - N_GEOMETRIC)
+                f = ti.static(c - N_GEOMETRIC)
+                out[idx] = photo[ti.static(e * M - e * (e - 1) // 2 + f - e)]
+    for a in ti.static(range(N_GEOMETRIC)):
+        out[NT + a] = g_geo[a]
+    for e in ti.static(range(M)):
+        out[NT + N_GEOMETRIC + e] = ge[e]
+    for k in ti.static(range(3)):
+        out[NT + P + k] = stats[k]
+    return out
+
+
+@ti.func
 def hist_bin(a: ti.f32) -> ti.i32:
     """Histogram bin of `a = |r| ≥ 0` read from its float32 bits (no logarithm): `HIST_SUB` linear bins per octave
     from `2^HIST_LOG2_MIN`; smaller values fall in bin 0, larger ones in the last bin."""
@@ -138,7 +197,9 @@ def planar_step(
     pixel on each side (`OUTSIDE` where the warp leaves `cur`), so that the five warped samples of a pixel's ESM
     gradient are read, not re-interpolated.
     """
-    P = ti.static(N_GEOMETRIC + grid_rows * grid_cols + 1)
+    M = ti.static(grid_rows * grid_cols + 1)
+    MT = ti.static(M * (M + 1) // 2)
+    P = ti.static(N_GEOMETRIC + M)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
     hist0 = ti.static(NACC * (1 + MAX_BANDS))
@@ -170,7 +231,15 @@ def planar_step(
             acc = ti.Vector.zero(ti.f32, NACC)
             rows = v1 - v0 + 1
             for v in range(v0 + b * rows // nb, v0 + (b + 1) * rows // nb):
-                racc = ti.Vector.zero(ti.f32, NACC)
+                dv = v - cy
+                mxx = ti.Vector.zero(ti.f32, 5)  # Σ w gx² du^k, k = 0…4
+                mxy = ti.Vector.zero(ti.f32, 4)  # Σ w gx gy du^k, k = 0…3
+                myy = ti.Vector.zero(ti.f32, 3)  # Σ w gy² du^k, k = 0…2
+                cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e β_q
+                photo = ti.Vector.zero(ti.f32, MT)  # upper triangle of Σ w E Eᵀ
+                gb = ti.Vector.zero(ti.f32, 5)  # Σ w r β
+                ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
+                stats = ti.Vector.zero(ti.f32, 3)
                 vu = ti.max(v - 1, 0)
                 vd = ti.min(v + 1, hr - 1)
                 i = v - v0 + 1
@@ -193,34 +262,36 @@ def planar_step(
                         r = gain * c0 + beta - ir
                         gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
                         gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
-                        du = u - cx  # = s · q_u
-                        dv = v - cy
-                        radial = (gx * du + gy * dv) / s
-                        J = ti.Vector.zero(ti.f32, P)
-                        J[0] = s * gx
-                        J[1] = s * gy
-                        J[2] = gy * du - gx * dv
-                        J[3] = gx * du - gy * dv
-                        J[4] = 3.0 * s * radial
-                        J[5] = gx * dv + gy * du
-                        J[6] = -du * radial
-                        J[7] = -dv * radial
-                        for k in ti.static(range(grid_rows * grid_cols)):
-                            J[N_GEOMETRIC + k] = phi[k] * c0
-                        J[P - 1] = 1.0
+                        du = u - cx
+                        du2 = du * du
                         w = robust_weight(r, sigma, kind)
-                        for a in ti.static(range(P)):
-                            wja = w * J[a]
-                            for c in ti.static(range(a, P)):
-                                racc[ti.static(a * P - a * (a - 1) // 2 + c - a)] += wja * J[c]
-                            racc[NT + a] += wja * r
-                        racc[NT + P + 0] += 1.0
+                        wxx = w * gx * gx
+                        wxy = w * gx * gy
+                        wyy = w * gy * gy
+                        mxx += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du2 * du, wxx * du2 * du2])
+                        mxy += ti.Vector([wxy, wxy * du, wxy * du2, wxy * du2 * du])
+                        myy += ti.Vector([wyy, wyy * du, wyy * du2])
+                        basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
+                        E = ti.Vector.zero(ti.f32, M)
+                        for k in ti.static(range(M - 1)):
+                            E[k] = phi[k] * c0
+                        E[M - 1] = 1.0
+                        for e in ti.static(range(M)):
+                            we = w * E[e]
+                            for q in ti.static(range(5)):
+                                cross[e, q] += we * basis[q]
+                            for f in ti.static(range(e, M)):
+                                photo[ti.static(e * M - e * (e - 1) // 2 + f - e)] += we * E[f]
+                        w_r = w * r
+                        gb += w_r * basis
+                        ge += w_r * E
+                        stats[0] += 1.0
                         if ti.abs(r) <= INLIER_C * sigma:
-                            racc[NT + P + 1] += 1.0
-                        racc[NT + P + 2] += r * r
+                            stats[1] += 1.0
+                        stats[2] += r * r
                         k_bin = hoff + hist_bin(ti.abs(r))
                         work[k_bin] = work[k_bin] + 1.0  # band-owned: plain store, no atomic
-                acc += racc
+                acc += row_sums(mxx, mxy, myy, cross, photo, gb, ge, stats, dv, s)
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
     # Pass 3 (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
