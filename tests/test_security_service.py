@@ -1,0 +1,117 @@
+"""The real, unchanged `ddvs serve` behind the secured hub: a TLS client of a router with mutual TLS and the generated
+deny-by-default rules. The operator sets the reference and reads the state; an observer (and a plant identity) can
+neither set the reference nor change the configuration, and the service's state shows that nothing changed."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import zenoh
+from conftest import free_port
+from test_security import KEYS, SCRIPT, Inbox, _zenoh_config
+
+from ddvs_service.protocol import Command, Header, Reply, Time, dump, encode_image, image_from_array
+from ddvs_service.protocol.security import (
+    TlsFiles,
+    certificate_identities,
+    client_config,
+    render_json5,
+    router_config,
+)
+
+W, H = 320, 240
+
+
+def texture() -> np.ndarray:
+    rng = np.random.default_rng(7)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (H, W)).astype(np.float32), (0, 0), 3.0)
+    return cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+
+
+def command(session: zenoh.Session, timeout: float = 2.0, **kwargs: object) -> Reply | None:
+    """The service's reply to one command, or None when no reply came (refused by the router)."""
+    for reply in session.get(KEYS.servo_command, payload=dump(Command(**kwargs)), timeout=timeout):
+        if reply.ok is not None:
+            return Reply.model_validate_json(reply.ok.payload.to_bytes())
+    return None
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("certs")
+    subprocess.run(["bash", str(SCRIPT), str(directory)], check=True, capture_output=True)
+    return directory
+
+
+@pytest.mark.slow
+def test_ddvs_serve_over_mtls_obeys_the_operator_only(certs: Path, tmp_path: Path) -> None:
+    endpoint = f"tls/localhost:{free_port()}"
+    router = zenoh.open(_zenoh_config(router_config(
+        KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, "router"), observers_read_frames=False)))
+    sessions = [router]
+    zenoh_file = tmp_path / "service.json5"
+    zenoh_file.write_text(render_json5(client_config("service", [endpoint], TlsFiles.for_role(certs, "service")),
+                                       "ddvs serve as the service role"))
+    serve_file = tmp_path / "serve.json"
+    serve_file.write_text(json.dumps({
+        "robot": KEYS.robot,
+        "zenoh": {"mode": "client", "connect": [endpoint], "zenoh_config": str(zenoh_file)},
+        "state_dir": str(tmp_path / "state"),
+        "intrinsics": {"fx": 420.0, "fy": 420.0, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
+        "registration": {"template_size": [100, 80]},
+    }))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    proc = subprocess.Popen([sys.executable, "-m", "ddvs_service.cli", "serve", "--config", str(serve_file)],
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        operator, observer, plant = (
+            zenoh.open(_zenoh_config(client_config(role, [endpoint], TlsFiles.for_role(certs, role))))
+            for role in ("operator", "observer", "plant"))
+        sessions += [operator, observer, plant]
+        deadline = time.monotonic() + 60.0
+        while command(operator, timeout=1.0, op="get_state") is None:
+            assert proc.poll() is None, f"ddvs serve exited: {proc.stderr.read() if proc.stderr else ''}"
+            assert time.monotonic() < deadline, "ddvs serve did not answer the operator"
+        gains = command(operator, op="get_config")
+        assert gains is not None and gains.ok and gains.data is not None
+        gains_before = gains.data["control"]["gains"]
+
+        for intruder in (observer, plant):
+            assert command(intruder, op="set_reference", source="next_frame") is None
+            assert command(intruder, op="set_config", config={"control": {"gains": 0.9}}) is None
+            assert command(intruder, op="get_state") is None
+        state = command(operator, op="get_state")
+        assert state is not None and state.data is not None
+        assert state.data["state"] == "IDLE" and state.data["has_reference"] is False
+        config = command(operator, op="get_config")
+        assert config is not None and config.data is not None and config.data["control"]["gains"] == gains_before
+
+        observed = Inbox(observer, KEYS.servo_status)
+        frames_seen_by_observer = Inbox(observer, KEYS.camera_image)
+        reply = command(operator, op="set_reference", source="next_frame")
+        assert reply is not None and reply.ok, reply
+        frame = encode_image(image_from_array(texture(), "mono8", Header(Time.now(), "camera")))
+        deadline = time.monotonic() + 60.0
+        while not any(json.loads(p).get("state") == "READY" for p in observed.payloads):
+            assert time.monotonic() < deadline, "the plant's frame never became the reference"
+            plant.put(KEYS.camera_image, frame)
+            time.sleep(0.1)
+        state = command(operator, op="get_state")
+        assert state is not None and state.data is not None and state.data["has_reference"] is True
+        assert frames_seen_by_observer.payloads == []  # configured: observers do not read frames
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=30)
+        for session in reversed(sessions):
+            session.close()
+    assert code == 0
