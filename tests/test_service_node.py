@@ -93,22 +93,18 @@ class Operator:
         raise AssertionError("no reply from the service")
 
     def send(self, image: np.ndarray) -> dict:
-        """Publish one frame and wait for the status it produced."""
+        """Publish one frame and wait for the status and the twist it produced."""
         self._stamp += 1
-        n = len(self.statuses)
         header = Header(Time.from_ns(self._stamp * 33_000_000), "camera")
-        self.frames.put(encode_image(image_from_array(image, "mono8", header)))
-        return self.wait_status(n)
+        return self.send_raw(encode_image(image_from_array(image, "mono8", header)))
 
     def send_raw(self, payload: bytes) -> dict:
-        n = len(self.statuses)
+        """Publish one payload on the image key; every frame, accepted or rejected, yields a status and a twist."""
+        n_status, n_twist = len(self.statuses), len(self.twists)
         self.frames.put(payload)
-        return self.wait_status(n)
-
-    def wait_status(self, n: int, timeout: float = 20.0) -> dict:
-        deadline = time.monotonic() + timeout
-        while len(self.statuses) <= n:
-            assert time.monotonic() < deadline, "no status from the service"
+        deadline = time.monotonic() + 20.0
+        while len(self.statuses) <= n_status or len(self.twists) <= n_twist:
+            assert time.monotonic() < deadline, "no status and twist from the service"
             time.sleep(0.002)
         return self.statuses[-1]
 
@@ -309,3 +305,21 @@ def test_sigterm_publishes_zero_twist_and_exits_cleanly(tmp_path: Path) -> None:
         op.close()
         if service.proc.poll() is None:
             service.proc.kill()
+
+
+def test_general_model_serves_a_planar_target(tmp_path: Path) -> None:
+    """With `registration.model = general` the service runs the eq. (2) tracker; on a planar scene ρ* stays ~0."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    config = config.merged({"registration": {"model": "general"}})
+    img = scene()
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_reference", source="next_frame").ok
+        op.send(img)
+        assert op.command(op="start").ok
+        status = op.send(shifted(img, 4.0, -3.0, 2.0))
+        assert status["state"] == "SERVOING", status
+        assert np.linalg.norm(status["twist"]) > 0, status
+        assert op.send(img)["state"] == "CONVERGED"
+    persisted = json.loads((tmp_path / "state" / "state.json").read_text())
+    assert "rho_coeffs" in persisted

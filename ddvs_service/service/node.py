@@ -81,8 +81,9 @@ class ServoNode:
         self._zero_sent = True
         self._seq = 0
         self._last_status: Status | None = None
+        self._persisted_rho: list[float] = []
         self._lock = threading.Lock()
-        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None] | None = None
+        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float]] | None = None
         self._restore()
 
     # --- persistence --------------------------------------------------------------------------------------------
@@ -94,17 +95,17 @@ class ServoNode:
         roi = tuple(state["roi"]) if state.get("roi") else None
         self._reference_stamp_ns = state.get("reference_stamp_ns")
         self._resume_state = ServoState(state.get("state", "READY"))
-        self._restored_reference = (reference, roi)
+        self._restored_reference = (reference, roi, state.get("rho_coeffs") or [])
         self._try_adopt_restored()
 
     def _try_adopt_restored(self) -> None:
         restored = self._restored_reference
         if restored is None or self.pipeline.intrinsics is None:
             return
-        reference, roi = restored
+        reference, roi, rho_coeffs = restored
         self._restored_reference = None
         try:
-            self.pipeline.set_reference(reference, roi)
+            self.pipeline.set_reference(reference, roi, rho_coeffs=rho_coeffs)
         except ValueError as exc:
             log.error("persisted reference not usable", extra=fields(error=str(exc)))
             return
@@ -119,6 +120,7 @@ class ServoNode:
             "state": self.pipeline.machine.state.value,
             "roi": list(self.pipeline.roi) if self.pipeline.roi else None,
             "reference_stamp_ns": self._reference_stamp_ns,
+            "rho_coeffs": self.pipeline.rho_coeffs,
         })
 
     def _persist_config(self) -> None:
@@ -341,7 +343,8 @@ class ServoNode:
             twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self._counters(),
             message=step.message[:500],
         ))
-        if previous != step.state.value:
+        if previous != step.state.value or self.pipeline.rho_coeffs != self._persisted_rho:
+            self._persisted_rho = list(self.pipeline.rho_coeffs)
             self._persist_state()
             self._publish_state(step.message or "frame")
 

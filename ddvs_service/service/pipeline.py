@@ -1,8 +1,8 @@
 """One servo step per frame, without I/O: register against the reference, compute the law, update the state.
 
-Data flow: grey frame → tracker (warm-started; global initialisation on the first frame after a reference, and on
-every frame while LOST) → control error and twist → state machine. The twist is in the current camera frame
-(OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOING.
+Data flow: grey frame → estimator (planar or general, warm-started; global initialisation on the first frame after a
+reference and while LOST) → control error and twist from `G`, `e`, `ρ*` of the control point → state machine. The
+twist is in the current camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOING.
 """
 
 from __future__ import annotations
@@ -15,11 +15,9 @@ from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlLaw, ControlOutput
-from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, reacquire
 from ddvs_service.registration.images import to_grey
-from ddvs_service.registration.result import RegistrationResult
-from ddvs_service.registration.tracker import Tracker
 from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.estimators import Estimate, GeneralEstimator, PlanarEstimator
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine
 
 Roi = tuple[int, int, int, int]
@@ -58,7 +56,7 @@ def template_roi(config: ServiceConfig, intrinsics: Intrinsics) -> Roi:
 
 
 class ServoPipeline:
-    """Reference, tracker, law and state machine of one servo; `step(frame)` runs one control period."""
+    """Reference, estimator, law and state machine of one servo; `step(frame)` runs one control period."""
 
     def __init__(self, config: ServiceConfig, intrinsics: Intrinsics | None = None) -> None:
         self.config = config
@@ -67,10 +65,9 @@ class ServoPipeline:
                                     config.control.stop_threshold * config.control.resume_factor)
         self.reference: NDArray[np.float32] | None = None
         self.roi: Roi | None = None
-        self._tracker: Tracker | None = None
+        self.rho_coeffs: list[float] = []
+        self._estimator: PlanarEstimator | GeneralEstimator | None = None
         self._law: ControlLaw | None = None
-        self._needs_init = False
-        self._initializer = GlobalInitializer(GlobalInitConfig(feature_source=config.registration.feature_source))
         if intrinsics is not None:
             self._law = ControlLaw(config.control.law_config(), intrinsics)
 
@@ -82,103 +79,97 @@ class ServoPipeline:
         law = ControlLaw(self.config.control.law_config(), intrinsics)
         self.intrinsics, self._law = intrinsics, law
         if self.reference is not None:
-            self._build_tracker(self.reference, self.roi)
+            self._build_estimator(self.reference, self.roi)
 
     def apply_config(self, config: ServiceConfig) -> None:
         """Switch to an already validated configuration, keeping the reference and the servo state."""
         law = ControlLaw(config.control.law_config(), self.intrinsics) if self.intrinsics else None
+        registration_changed = config.registration != self.config.registration
         self.config, self._law = config, law
         self.machine.stop_threshold = config.control.stop_threshold
         self.machine.resume_threshold = config.control.stop_threshold * config.control.resume_factor
-        self._initializer = GlobalInitializer(GlobalInitConfig(feature_source=config.registration.feature_source))
-        if self.reference is not None:
-            self._build_tracker(self.reference, None if config.registration.roi is None else config.registration.roi)
+        if self.reference is not None and registration_changed:
+            self._build_estimator(self.reference, config.registration.roi)
 
     # --- reference ----------------------------------------------------------------------------------------------
-    def set_reference(self, image: NDArray, roi: Roi | None = None, G0: NDArray | None = None) -> Roi:
+    def set_reference(self, image: NDArray, roi: Roi | None = None, G0: NDArray | None = None,
+                      rho_coeffs: list[float] | None = None) -> Roi:
         """Adopt `image` as the reference I*; the first frame after it is globally initialised unless `G0` (e.g.
-        identity when the reference is the current frame) is given. Returns the ROI used."""
+        identity when the reference is the current frame) is given. `rho_coeffs`: a known parallax field of this
+        reference (general model; persisted across restarts). Returns the ROI used."""
         if self.intrinsics is None:
             raise ValueError("no camera intrinsics yet: configure 'intrinsics' or publish camera info first")
         grey = np.ascontiguousarray(to_grey(image), dtype=np.float32)
         if grey.shape != (self.intrinsics.height, self.intrinsics.width):
             raise ValueError(f"reference is {grey.shape[1]}×{grey.shape[0]}, the camera is "
                              f"{self.intrinsics.width}×{self.intrinsics.height}")
-        self._build_tracker(grey, roi)
+        self.rho_coeffs = list(rho_coeffs or [])
+        estimator = self._build_estimator(grey, roi)
         if G0 is not None:
-            assert self._tracker is not None
-            self._tracker.reset(G0)
-        self._needs_init = G0 is None
+            estimator.assume(G0)
         self.machine.reference_set()
         assert self.roi is not None
         return self.roi
 
-    def _build_tracker(self, grey: NDArray[np.float32], roi: Roi | None) -> None:
+    def _build_estimator(self, grey: NDArray[np.float32], roi: Roi | None) -> PlanarEstimator | GeneralEstimator:
         assert self.intrinsics is not None
         roi = roi if roi is not None else template_roi(self.config, self.intrinsics)
-        tracker = Tracker(grey, roi, self.config.registration.engine_config())
-        self.reference, self.roi, self._tracker = grey, roi, tracker
-        self._needs_init = True
+        settings = self.config.registration
+        estimator: PlanarEstimator | GeneralEstimator
+        if settings.model == "general":
+            estimator = GeneralEstimator(grey, roi, settings, self.rho_coeffs)
+        else:
+            estimator = PlanarEstimator(grey, roi, settings)
+        self.reference, self.roi, self._estimator = grey, roi, estimator
+        return estimator
 
     def clear_reference(self) -> None:
-        self.reference, self.roi, self._tracker = None, None, None
+        self.reference, self.roi, self._estimator, self.rho_coeffs = None, None, None, []
         self.machine.reset()
 
     @property
     def G(self) -> NDArray[np.float64] | None:
-        return None if self._tracker is None else self._tracker.G
+        return None if self._estimator is None else self._estimator.G
+
+    @property
+    def control_px(self) -> tuple[float, float]:
+        """The control point `p*` in reference pixels (default: the principal point)."""
+        assert self.intrinsics is not None
+        p = self.config.control.p_star
+        return (self.intrinsics.cx, self.intrinsics.cy) if p is None else p
 
     # --- one frame ----------------------------------------------------------------------------------------------
     def step(self, frame: NDArray) -> StepResult:
         """Register `frame` (grey or colour, same size as the reference) and compute the twist of this period."""
-        if self._tracker is None or self._law is None or self.reference is None:
+        if self._estimator is None or self._law is None or self.reference is None:
             return StepResult(ZERO6, ZERO6, 0.0, self.machine.state, 0, 0.0, 0.0, "no reference")
         grey = to_grey(frame)
         if grey.shape != self.reference.shape:
             raise ValueError(f"frame is {grey.shape[1]}×{grey.shape[0]}; the reference is "
                              f"{self.reference.shape[1]}×{self.reference.shape[0]}")
         t0 = time.perf_counter()
-        message = ""
-        if self._needs_init or self.machine.state == ServoState.LOST:
-            message = self._global_init(grey)
-        result = self._tracker.track(grey)
+        if self.machine.state == ServoState.LOST:
+            self._estimator.lose()
+        est = self._estimator.estimate(grey, self.control_px)
+        if est.rho_coeffs:
+            self.rho_coeffs = est.rho_coeffs
         t1 = time.perf_counter()
-        tracked = result.converged and result.inlier_ratio >= self.config.registration.min_inlier_ratio
-        if tracked:
-            self._needs_init = False
-        out = self._control(result) if tracked else None
+        out = self._control(est) if est.tracked else None
         error = out.error if out is not None else ZERO6
         norm = out.error_norm if out is not None else float("nan")
-        state = self.machine.on_frame(FrameOutcome(tracked, norm))
+        state = self.machine.on_frame(FrameOutcome(out is not None, norm))
         twist = out.twist if (out is not None and self.machine.moves) else ZERO6
         t2 = time.perf_counter()
-        if not tracked:
-            message = f"{message}; registration: {result.reason}".strip("; ")
         return StepResult(
             twist=np.asarray(twist, dtype=np.float64), error=np.asarray(error, dtype=np.float64),
-            error_norm=0.0 if not np.isfinite(norm) else norm, state=state,
-            iterations=int(sum(result.iterations)), residual_rms=_finite(result.residual_rms),
-            inlier_ratio=_finite(result.inlier_ratio), message=message,
+            error_norm=0.0 if not np.isfinite(norm) else norm, state=state, iterations=est.iterations,
+            residual_rms=est.residual_rms, inlier_ratio=est.inlier_ratio, message=est.message,
             timings_ms={"registration": (t1 - t0) * 1e3, "control": (t2 - t1) * 1e3},
         )
 
-    def _global_init(self, grey: NDArray[np.float32]) -> str:
-        assert self._tracker is not None and self.reference is not None and self.roi is not None
-        if not self.config.registration.global_init:
-            return ""
-        init, contradicts = reacquire(self._initializer, self.reference, self.roi, grey, self._tracker.G)
-        if init.status == "OK" and init.G is not None:
-            self._tracker.reset(init.G)
-            return "global initialisation: ok" + (" (contradicted the tracking estimate)" if contradicts else "")
-        return f"global initialisation: LOST ({init.reason})"
-
-    def _control(self, result: RegistrationResult) -> ControlOutput | None:
+    def _control(self, est: Estimate) -> ControlOutput | None:
         assert self._law is not None
         try:
-            return self._law.compute(result.G, np.zeros(3), 0.0)
+            return self._law.compute(est.G, est.e, est.rho)
         except ValueError:
             return None
-
-
-def _finite(x: float) -> float:
-    return float(x) if np.isfinite(x) else 0.0
