@@ -1,6 +1,7 @@
-"""The real, unchanged `ddvs serve` behind the secured hub: a TLS client of a router with mutual TLS and the generated
-deny-by-default rules. The operator sets the reference and reads the state; an observer (and a plant identity) can
-neither set the reference nor change the configuration, and the service's state shows that nothing changed."""
+"""The real, unchanged `ddvs serve` and `ddvs sim arm` behind the secured hub: TLS clients of a router with mutual TLS
+and the generated deny-by-default rules. The operator sets the reference and reads the state; an observer (and a plant
+identity) can neither set the reference nor change the configuration, and the service's state shows that nothing
+changed. Only the bridge's joint velocities move the simulated arm."""
 
 from __future__ import annotations
 
@@ -19,7 +20,18 @@ import zenoh
 from conftest import free_port
 from test_security import KEYS, SCRIPT, Inbox, _zenoh_config
 
-from ddvs_service.protocol import Command, Header, Reply, Time, dump, encode_image, image_from_array
+from ddvs_service.protocol import (
+    Command,
+    Header,
+    JointState,
+    Reply,
+    Time,
+    decode_joint_state,
+    dump,
+    encode_image,
+    encode_joint_state,
+    image_from_array,
+)
 from ddvs_service.protocol.security import (
     TlsFiles,
     certificate_identities,
@@ -115,3 +127,63 @@ def test_ddvs_serve_over_mtls_obeys_the_operator_only(certs: Path, tmp_path: Pat
         for session in reversed(sessions):
             session.close()
     assert code == 0
+
+
+@pytest.mark.slow
+def test_only_the_bridge_moves_the_real_arm_sim_over_mtls(certs: Path, tmp_path: Path) -> None:
+    """`ddvs sim arm` (SAPIEN, realtime clock) as the plant client of the secured hub: joint velocities from the
+    operator and the observer leave the arm still; the same commands from the bridge move it."""
+    endpoint = f"tls/localhost:{free_port()}"
+    router = zenoh.open(_zenoh_config(router_config(
+        KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, "router"))))
+    sessions = [router]
+    plant_file = tmp_path / "plant.json5"
+    plant_file.write_text(render_json5(client_config("plant", [endpoint], TlsFiles.for_role(certs, "plant")),
+                                       "ddvs sim arm as the plant role"))
+    scene = Path(__file__).resolve().parents[1] / "configs" / "arm" / "ur5_poster.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ddvs_service.cli", "sim", "arm", "--config", str(scene), "--clock", "realtime",
+         "--fps", "30", "--deadman", "0.1", "--start", "reference", "--mode", "client", "--connect", endpoint,
+         "--zenoh-config", str(plant_file), "--prefix", KEYS.prefix, "--robot", KEYS.robot],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")})
+    try:
+        bridge, operator, observer = (
+            zenoh.open(_zenoh_config(client_config(role, [endpoint], TlsFiles.for_role(certs, role))))
+            for role in ("bridge", "operator", "observer"))
+        sessions += [bridge, operator, observer]
+        states: list[JointState] = []
+        watch = observer.declare_subscriber(KEYS.arm_joint_states,
+                                            lambda s: states.append(decode_joint_state(s.payload.to_bytes())))
+        deadline = time.monotonic() + 60.0
+        while not states:
+            assert proc.poll() is None, "ddvs sim arm exited"
+            assert time.monotonic() < deadline, "no joint states from the sim through the hub"
+            time.sleep(0.05)
+        names = states[-1].name
+
+        def drive(session: zenoh.Session, seconds: float = 1.0) -> float:
+            """Command joint 0 at 0.2 rad/s for `seconds`; returns how far joint 0 moved (rad)."""
+            start = states[-1].position[0]
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < seconds:
+                velocity = np.array([0.2] + [0.0] * (len(names) - 1))
+                session.put(KEYS.arm_joint_velocity, encode_joint_state(
+                    JointState(Header(Time.now(), ""), list(names), velocity=velocity)))
+                time.sleep(0.02)
+            time.sleep(0.3)
+            return float(states[-1].position[0] - start)
+
+        assert abs(drive(operator)) < 1e-6
+        assert abs(drive(observer)) < 1e-6
+        assert drive(bridge) > 0.1  # ≈ 0.2 rad/s × 1 s: the authorised path works in the same network
+        watch.undeclare()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+        for session in reversed(sessions):
+            session.close()
