@@ -106,59 +106,65 @@ def gain_at(params: ti.template(), u: ti.f32, v: ti.f32, grid_rows: ti.template(
     return gain, phi
 
 
-@ti.func
-def row_sums(mxx, mxy, myy, cross, photo, gb, ge, stats, dv: ti.f32, s: ti.f32):
-    """One row's contribution to the accumulator (upper triangle of `JᵀWJ`, `JᵀWr`, statistics) from its moments.
+# In a row (`dv = v − cy` fixed) the geometric Jacobian is `J_geo = C(dv) · b`, `b = [gx, gy, gx du, gy du, gx du²]`
+# (`du = u − cx`; rows of `C`: the `J[0…7]` of the module docstring). `C` is sparse: row a lists (basis index q,
+# coefficient index into `row_coefficients`).
+C_SPARSE = (
+    ((0, 0),),  # s gx
+    ((1, 0),),  # s gy
+    ((0, 1), (3, 2)),  # gy du − dv gx
+    ((1, 1), (2, 2)),  # gx du − dv gy
+    ((1, 3), (2, 4)),  # 3 (gx du + dv gy)
+    ((0, 5), (3, 2)),  # dv gx + gy du
+    ((3, 6), (4, 7)),  # −(gx du² + dv gy du) / s
+    ((1, 8), (2, 6)),  # −(dv gx du + dv² gy) / s
+)
+B_GY = (0, 1, 0, 1, 0)  # basis term b_q is gx·du^k (0) or gy·du^k (1) …
+B_POW = (0, 0, 1, 1, 2)  # … with k = B_POW[q]
+MOMENT_OFFSET = (0, 5, 9)  # moments: Σ w gx² du^k (k ≤ 4), Σ w gx gy du^k (k ≤ 3), Σ w gy² du^k (k ≤ 2)
+N_MOMENTS = 12
 
-    In a row `dv = v − cy` is constant, so the geometric Jacobian is `J_geo = C(dv) · β` with the 5 per-pixel terms
-    `β = [gx, gy, gx du, gy du, gx du²]` (`du = u − cx`) and the 8×5 matrix `C` below (rows: the `J[0…7]` of the
-    module docstring). The row's `Σ w β βᵀ` needs only 12 moments (`mxx`, `mxy`, `myy`); the photometric columns
-    `E = [φ_k Iw, 1]` enter through `cross = Σ w E βᵀ`, `photo = Σ w E Eᵀ`, and `JᵀWr` through `gb = Σ w r β`,
-    `ge = Σ w r E`. Same sums as the per-pixel outer product, with a third of the per-pixel multiply-adds.
+
+def _moment_index(p: int, q: int) -> int:
+    """Index of `Σ w b_p b_q` in the 12 row moments."""
+    return MOMENT_OFFSET[B_GY[p] + B_GY[q]] + B_POW[p] + B_POW[q]
+
+
+@ti.func
+def row_sums(moments, cross, photo, gb, ge, stats, dv: ti.f32, s: ti.f32):
+    """One row's contribution to the accumulator (upper triangle of `JᵀWJ`, `JᵀWr`, statistics) from its sums.
+
+    `J_geo = C(dv) · b` (see `C_SPARSE`), so the row's geometric block `C (Σ w b bᵀ) Cᵀ` needs only the 12 moments
+    of `Σ w b bᵀ`; the photometric columns `E = [φ_k Iw, 1]` enter through `cross = Σ w E bᵀ` and
+    `photo = Σ w E Eᵀ` (upper triangle), and `JᵀWr` through `gb = Σ w r b`, `ge = Σ w r E`. Same sums as the
+    per-pixel outer product of the full Jacobian, with a third of the per-pixel multiply-adds.
     """
     M = ti.static(ge.n)
     P = ti.static(N_GEOMETRIC + M)
     NT = ti.static(P * (P + 1) // 2)
-    bb = ti.Matrix(
-        [
-            [mxx[0], mxy[0], mxx[1], mxy[1], mxx[2]],
-            [mxy[0], myy[0], mxy[1], myy[1], mxy[2]],
-            [mxx[1], mxy[1], mxx[2], mxy[2], mxx[3]],
-            [mxy[1], myy[1], mxy[2], myy[2], mxy[3]],
-            [mxx[2], mxy[2], mxx[3], mxy[3], mxx[4]],
-        ]
-    )
     si = 1.0 / s
-    C = ti.Matrix(
-        [
-            [s, 0.0, 0.0, 0.0, 0.0],
-            [0.0, s, 0.0, 0.0, 0.0],
-            [-dv, 0.0, 0.0, 1.0, 0.0],
-            [0.0, -dv, 1.0, 0.0, 0.0],
-            [0.0, 3.0 * dv, 3.0, 0.0, 0.0],
-            [dv, 0.0, 0.0, 1.0, 0.0],
-            [0.0, 0.0, 0.0, -dv * si, -si],
-            [0.0, -dv * dv * si, -dv * si, 0.0, 0.0],
-        ]
-    )
-    hg = C @ bb @ C.transpose()
-    hc = C @ cross.transpose()  # 8×M
-    g_geo = C @ gb
+    coef = ti.Vector([s, -dv, 1.0, 3.0 * dv, 3.0, dv, -dv * si, -si, -dv * dv * si])
     out = ti.Vector.zero(ti.f32, NT + P + N_STATS)
-    for a in ti.static(range(P)):
+    for a in ti.static(range(N_GEOMETRIC)):
         for c in ti.static(range(a, P)):
             idx = ti.static(a * P - a * (a - 1) // 2 + c - a)
-            if ti.static(c < N_GEOMETRIC):
-                out[idx] = hg[a, c]
-            elif ti.static(a < N_GEOMETRIC):
-                out[idx] = hc[a, c - N_GEOMETRIC]
-            else:
-                e = ti.static(a - N_GEOMETRIC)
-                f = ti.static(c - N_GEOMETRIC)
-                out[idx] = photo[ti.static(e * M - e * (e - 1) // 2 + f - e)]
-    for a in ti.static(range(N_GEOMETRIC)):
-        out[NT + a] = g_geo[a]
+            total = 0.0
+            for p, i in ti.static(C_SPARSE[a]):
+                if ti.static(c < N_GEOMETRIC):
+                    for q, j in ti.static(C_SPARSE[c]):
+                        total += coef[i] * coef[j] * moments[ti.static(_moment_index(p, q))]
+                else:
+                    total += coef[i] * cross[c - N_GEOMETRIC, p]
+            out[idx] = total
+        g_total = 0.0
+        for p, i in ti.static(C_SPARSE[a]):
+            g_total += coef[i] * gb[p]
+        out[NT + a] = g_total
     for e in ti.static(range(M)):
+        for f in ti.static(range(e, M)):
+            a = ti.static(N_GEOMETRIC + e)
+            c = ti.static(N_GEOMETRIC + f)
+            out[ti.static(a * P - a * (a - 1) // 2 + c - a)] = photo[ti.static(e * M - e * (e - 1) // 2 + f - e)]
         out[NT + N_GEOMETRIC + e] = ge[e]
     for k in ti.static(range(3)):
         out[NT + P + k] = stats[k]
@@ -232,12 +238,10 @@ def planar_step(
             rows = v1 - v0 + 1
             for v in range(v0 + b * rows // nb, v0 + (b + 1) * rows // nb):
                 dv = v - cy
-                mxx = ti.Vector.zero(ti.f32, 5)  # Σ w gx² du^k, k = 0…4
-                mxy = ti.Vector.zero(ti.f32, 4)  # Σ w gx gy du^k, k = 0…3
-                myy = ti.Vector.zero(ti.f32, 3)  # Σ w gy² du^k, k = 0…2
-                cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e β_q
+                moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
+                cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e b_q
                 photo = ti.Vector.zero(ti.f32, MT)  # upper triangle of Σ w E Eᵀ
-                gb = ti.Vector.zero(ti.f32, 5)  # Σ w r β
+                gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
                 ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
                 stats = ti.Vector.zero(ti.f32, 3)
                 vu = ti.max(v - 1, 0)
@@ -268,9 +272,9 @@ def planar_step(
                         wxx = w * gx * gx
                         wxy = w * gx * gy
                         wyy = w * gy * gy
-                        mxx += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du2 * du, wxx * du2 * du2])
-                        mxy += ti.Vector([wxy, wxy * du, wxy * du2, wxy * du2 * du])
-                        myy += ti.Vector([wyy, wyy * du, wyy * du2])
+                        du3 = du2 * du
+                        moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
+                                              wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
                         basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
                         E = ti.Vector.zero(ti.f32, M)
                         for k in ti.static(range(M - 1)):
@@ -291,7 +295,7 @@ def planar_step(
                         stats[2] += r * r
                         k_bin = hoff + hist_bin(ti.abs(r))
                         work[k_bin] = work[k_bin] + 1.0  # band-owned: plain store, no atomic
-                acc += row_sums(mxx, mxy, myy, cross, photo, gb, ge, stats, dv, s)
+                acc += row_sums(moments, cross, photo, gb, ge, stats, dv, s)
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
     # Pass 3 (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
