@@ -21,8 +21,9 @@ import pytest
 import zenoh
 from conftest import free_port
 
-from ddvs_service.protocol import Keys, SessionConfig
+from ddvs_service.protocol import TOPICS, Keys, SessionConfig
 from ddvs_service.protocol.security import (
+    ROLE_GRANTS,
     ROLES,
     Identity,
     TlsFiles,
@@ -350,6 +351,15 @@ def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
                    if message not in ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"))
     other = Keys("ddvs", "other_robot")
     assert not any(key.startswith(other.base) for rule in acl["rules"] for key in rule["key_exprs"])
+
+
+def test_every_topic_of_the_key_table_has_exactly_one_writing_role() -> None:
+    """A topic added to `TOPICS` without a role that may write it fails here (the rules would silently deny it)."""
+    for name in TOPICS:
+        writers = [role for role, g in ROLE_GRANTS.items() if name in (*g.publish, *g.serve, *g.tokens)]
+        assert len(writers) == 1, f"TOPICS[{name!r}] is written by {writers}; expected exactly one role"
+        readers = [role for role, g in ROLE_GRANTS.items() if name in (*g.subscribe, *g.query, *g.watch)]
+        assert readers, f"TOPICS[{name!r}] has no reading role"
 
 
 def test_identity_and_role_errors_say_what_was_expected() -> None:

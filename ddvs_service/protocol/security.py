@@ -54,11 +54,8 @@ class Grants:
     tokens: tuple[str, ...] = ()
     watch: tuple[str, ...] = ()
 
-    def names(self) -> set[str]:
-        return {*self.publish, *self.subscribe, *self.serve, *self.query, *self.tokens, *self.watch}
 
-
-_SAMPLE_TOPICS = tuple(n for n, spec in TOPICS.items() if n not in ("servo_command", "liveliness"))
+_SAMPLE_TOPICS = tuple(n for n in TOPICS if n not in ("servo_command", "liveliness"))
 
 ROLE_GRANTS: dict[str, Grants] = {
     "service": Grants(
