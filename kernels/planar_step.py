@@ -199,9 +199,9 @@ def planar_step(
 ):
     """Evaluate residuals, robust weights and normal equations at the parameters in `params` (module docstring).
 
-    `warped` is scratch of shape `(v1 − v0 + 3, u1 − u0 + 3)`: the current image warped over the ROI grown by one
-    pixel on each side (`OUTSIDE` where the warp leaves `cur`), so that the five warped samples of a pixel's ESM
-    gradient are read, not re-interpolated.
+    `warped` is scratch of shape `(v1 − v0 + 3, u1 − u0 + 3)`: each band first warps the current image over its
+    rows of the ROI grown by one pixel on each side (`OUTSIDE` where the warp leaves `cur`), so that the five warped
+    samples of a pixel's ESM gradient are read, not re-interpolated.
     """
     M = ti.static(grid_rows * grid_cols + 1)
     MT = ti.static(M * (M + 1) // 2)
@@ -222,21 +222,26 @@ def planar_step(
     kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
     hr = ref.shape[0]
     wr = ref.shape[1]
-    # Pass 1: the current image warped over the grown ROI (embarrassingly parallel).
-    for i, j in ti.ndrange(v1 - v0 + 3, u1 - u0 + 3):
-        x, y, z = homography_apply(params, PARAMS_G, ti.cast(u0 - 1 + j, ti.f32), ti.cast(v0 - 1 + i, ti.f32))
-        val, ok = projected_sample(cur, x, y, z)
-        warped[i, j] = val if ok == 1 else OUTSIDE
-    # Pass 2: a CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
+    # A CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
     for it in range(nb * 512):
         if it % 512 == 0:
             b = it // 512
             hoff = hist0 + b * HIST_BINS
             for k in range(HIST_BINS):
                 work[hoff + k] = 0.0
-            acc = ti.Vector.zero(ti.f32, NACC)
             rows = v1 - v0 + 1
-            for v in range(v0 + b * rows // nb, v0 + (b + 1) * rows // nb):
+            first = v0 + b * rows // nb
+            last = v0 + (b + 1) * rows // nb  # exclusive
+            # The band's rows of the warped current image, with one halo row on each side (neighbouring bands
+            # write the same values there): serial loops inside the band, no per-pixel task dispatch.
+            for i in range(first - v0, last - v0 + 2):
+                for j in range(u1 - u0 + 3):
+                    x, y, z = homography_apply(params, PARAMS_G, ti.cast(u0 - 1 + j, ti.f32),
+                                               ti.cast(v0 - 1 + i, ti.f32))
+                    val, ok = projected_sample(cur, x, y, z)
+                    warped[i, j] = val if ok == 1 else OUTSIDE
+            acc = ti.Vector.zero(ti.f32, NACC)
+            for v in range(first, last):
                 dv = v - cy
                 moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
                 cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e b_q
