@@ -169,6 +169,13 @@ def served(tmp_path: Path) -> Iterator[tuple[Service, Operator, ServiceConfig]]:
         yield service, op, config
 
 
+def converge(op: Operator, image: np.ndarray) -> dict:
+    """Send `image` for `converge_frames` (3) frames: a servo at zero error is then CONVERGED."""
+    for _ in range(3):
+        status = op.send(image)
+    return status
+
+
 def state_of(op: Operator) -> str:
     reply = op.command(op="get_state")
     assert reply.ok and reply.data is not None
@@ -189,7 +196,9 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     assert state_of(op) == "READY"
     assert op.command(op="start").ok
 
-    status = op.send(img)  # identical image: zero error → CONVERGED, zero twist
+    status = op.send(img)  # identical image: zero error, but CONVERGED only after `converge_frames` (3) frames
+    assert status["state"] == "SERVOING" and status["error_norm"] < 1e-3
+    status = converge(op, img)
     assert status["state"] == "CONVERGED" and status["error_norm"] < 1e-3
     assert not np.any(op.twists[-1])
 
@@ -223,7 +232,7 @@ def test_bad_frames_are_rejected_and_counted(served: tuple[Service, Operator, Se
     assert op.command(op="set_reference", source="next_frame").ok
     op.send(img)
     assert op.command(op="start").ok
-    base = op.send(img)["counters"]["rejected"]
+    base = converge(op, img)["counters"]["rejected"]
     bad_payloads = [
         b"\x00\x01\x00\x00garbage",
         encode_image(image_from_array(img[:, :200].copy(), "mono8")),  # wrong size
@@ -320,6 +329,6 @@ def test_general_model_serves_a_planar_target(tmp_path: Path) -> None:
         status = op.send(shifted(img, 4.0, -3.0, 2.0))
         assert status["state"] == "SERVOING", status
         assert np.linalg.norm(status["twist"]) > 0, status
-        assert op.send(img)["state"] == "CONVERGED"
+        assert converge(op, img)["state"] == "CONVERGED"
     persisted = json.loads((tmp_path / "state" / "state.json").read_text())
     assert "rho_coeffs" in persisted

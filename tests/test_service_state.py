@@ -63,3 +63,14 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path) -> None:
         atomic_write_bytes(target, object())  # type: ignore[arg-type]
     assert target.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["config.json"]
+
+
+def test_convergence_needs_consecutive_frames_below_threshold() -> None:
+    sm = StateMachine(stop_threshold=1e-3, resume_threshold=5e-3, converge_frames=3)
+    sm.reference_set()
+    sm.start()
+    for norm in (5e-4, 5e-4, 2e-3, 5e-4, 5e-4):  # a dip interrupted by one frame above: the count restarts
+        assert sm.on_frame(FrameOutcome(True, norm)) == ServoState.SERVOING
+    assert sm.on_frame(FrameOutcome(True, 5e-4)) == ServoState.CONVERGED
+    with pytest.raises(ValueError, match="converge_frames"):
+        StateMachine(stop_threshold=1e-3, resume_threshold=5e-3, converge_frames=0)

@@ -66,8 +66,9 @@ class RegistrationSettings(_Strict):
 
 class ControlSettings(_Strict):
     """The servo law (`ControlConfig`): `law` dvs | dvs_reduced | ddvs, gains (1/s), control pixel, `c_star`,
-    saturation (m/s, rad/s) and the stop threshold on the error norm; `resume_factor` × stop threshold is the
-    hysteresis threshold above which a CONVERGED servo resumes."""
+    saturation (m/s, rad/s) and the stop threshold on the error norm, applied by the service's state machine: CONVERGED
+    after `converge_frames` consecutive frames below it (the law itself keeps commanding `Λ ε̄` until then);
+    `resume_factor` × stop threshold is the hysteresis threshold above which a CONVERGED servo resumes."""
 
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
     gains: float | tuple[float, float, float, float, float, float] = 0.4
@@ -77,8 +78,10 @@ class ControlSettings(_Strict):
     max_angular: float = Field(default=0.8, gt=0)
     stop_threshold: float = Field(default=1e-3, gt=0)
     resume_factor: float = Field(default=5.0, gt=1)
+    converge_frames: int = Field(default=3, ge=1)
 
     def law_config(self) -> ControlConfig:
+        """The law's settings; its own stop threshold is 0 because the state machine decides when to stop."""
         return ControlConfig(
             law=self.law,
             gains=self.gains,
@@ -86,7 +89,7 @@ class ControlSettings(_Strict):
             c_star=self.c_star,
             max_linear=self.max_linear,
             max_angular=self.max_angular,
-            stop_threshold=self.stop_threshold,
+            stop_threshold=0.0,
         )
 
 

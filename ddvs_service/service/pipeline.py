@@ -62,7 +62,8 @@ class ServoPipeline:
         self.config = config
         self.intrinsics = intrinsics
         self.machine = StateMachine(config.control.stop_threshold,
-                                    config.control.stop_threshold * config.control.resume_factor)
+                                    config.control.stop_threshold * config.control.resume_factor,
+                                    config.control.converge_frames)
         self.reference: NDArray[np.float32] | None = None
         self.roi: Roi | None = None
         self.rho_coeffs: list[float] = []
@@ -88,6 +89,7 @@ class ServoPipeline:
         self.config, self._law = config, law
         self.machine.stop_threshold = config.control.stop_threshold
         self.machine.resume_threshold = config.control.stop_threshold * config.control.resume_factor
+        self.machine.converge_frames = config.control.converge_frames
         if self.reference is not None and registration_changed:
             self._build_estimator(self.reference, config.registration.roi)
 

@@ -37,20 +37,24 @@ class FrameOutcome:
 class StateMachine:
     """Servo state with the transitions driven by commands and by frame outcomes.
 
-    `stop_threshold` is the error norm below which the servo is CONVERGED; `resume_threshold` (> stop) the norm
-    above which a CONVERGED servo resumes. `active` records that an operator asked for servoing (start) so that a
-    LOST or CONVERGED servo goes back to SERVOING by itself.
+    `stop_threshold` is the error norm below which the servo is CONVERGED, once it stayed below for
+    `converge_frames` consecutive frames (one noisy dip does not stop the arm); `resume_threshold` (> stop) is the norm
+    above which a CONVERGED servo resumes. LOST and CONVERGED servos go back to SERVOING by themselves.
     """
 
     stop_threshold: float
     resume_threshold: float
+    converge_frames: int = 1
     state: ServoState = ServoState.IDLE
+    _below: int = 0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.stop_threshold < self.resume_threshold:
             raise ValueError(
                 f"need 0 < stop_threshold < resume_threshold, got {self.stop_threshold} and {self.resume_threshold}"
             )
+        if self.converge_frames < 1:
+            raise ValueError(f"converge_frames must be ≥ 1, got {self.converge_frames}")
 
     # --- commands ---------------------------------------------------------------------------------------------
     def reference_set(self) -> ServoState:
@@ -85,12 +89,14 @@ class StateMachine:
         """Update the state from one frame's registration outcome (only while the servo is active)."""
         if not self.servo_active:
             return self.state
+        below = outcome.tracked and outcome.error_norm < self.stop_threshold
+        self._below = self._below + 1 if below else 0
         if not outcome.tracked:
             self.state = ServoState.LOST
         elif self.state == ServoState.CONVERGED:
             if outcome.error_norm > self.resume_threshold:
                 self.state = ServoState.SERVOING
-        elif outcome.error_norm < self.stop_threshold:
+        elif self._below >= self.converge_frames:
             self.state = ServoState.CONVERGED
         else:
             self.state = ServoState.SERVOING
