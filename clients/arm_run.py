@@ -14,6 +14,12 @@ Sequence:
 5. Stop every child (SIGINT, then SIGKILL after a grace period) — also on an exception or Ctrl-C.
 
 The ROI: `template` (w, h) centred on the control point p* (the principal point by default), as the paper's 70×70.
+
+Other topologies (tests/test_distributed.py: sim and bridge on one network namespace, the service on another, each
+host with its own `ddvs router`): `ArmRunSettings.launch` gives per child a command wrapper (e.g. `ip netns exec
+hostA`) and Zenoh flags replacing the loopback endpoints, `driver_session` this process's session. `open_arm_run`
+yields the started run (`ArmRun`) so that a caller can kill and restart a child mid-run before waiting for
+convergence; `run_arm` is `open_arm_run` + `ArmRun.wait_for_convergence`.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +41,18 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "configs" / "arm" / "ur5_poster.json"
 BRIDGE = ROOT / "configs" / "arm" / "ur5_bridge.json"
 STOP_GRACE_S = 10.0
+CHILDREN = ("sim", "serve", "bridge")
+
+
+@dataclass(frozen=True)
+class ChildLaunch:
+    """How one child (`sim`, `serve` or `bridge`) starts instead of the loopback default: `wrapper` command words put
+    before the interpreter (e.g. `("ip", "netns", "exec", "hostA")`: run it on another network namespace; the
+    wrapper must exec the command, so that the child's pid is the node's), and `zenoh` the Zenoh flags replacing the
+    loopback endpoints (e.g. `("--mode", "client", "--connect", "tcp/127.0.0.1:7447")`; None: loopback mesh)."""
+
+    wrapper: tuple[str, ...] = ()
+    zenoh: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -42,7 +60,9 @@ class ArmRunSettings:
     """`law` dvs | dvs_reduced | ddvs; `template` (w, h) pixels centred on p*; `clock` of the sim; `fps` frames per
     second; `gain` λ (1/s, Sec. 4: 0.4); `stop_threshold` on the error norm (Sec. 4: 1e-3); limits: `max_images`
     processed while servoing, `time_limit` seconds of wall time for the whole run; `settle_images` CONVERGED
-    images required before finishing; `robot`/`prefix` of the keys."""
+    images required before finishing; `robot`/`prefix` of the keys; `launch` per child name how it starts
+    (default: loopback mesh, this interpreter); `driver_session` the `SessionConfig` fields of this process's session
+    (default: a peer connecting to the sim's and the service's loopback ports)."""
 
     out_dir: Path
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
@@ -58,6 +78,13 @@ class ArmRunSettings:
     bridge: Path = BRIDGE
     robot: str = "arm0"
     prefix: str = "ddvs"
+    launch: Mapping[str, ChildLaunch] = field(default_factory=dict)
+    driver_session: Mapping[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.launch) - set(CHILDREN))
+        if unknown:
+            raise ValueError(f"launch names unknown children {unknown}; expected some of {list(CHILDREN)}")
 
 
 @dataclass
@@ -94,12 +121,13 @@ def render_reference(scene_path: Path) -> tuple[Any, Any]:
 
 
 @contextmanager
-def child(name: str, args: list[str], log_dir: Path) -> Iterator[subprocess.Popen]:
-    """`python -m ddvs_service.cli ARGS` in its own process (output to `<log_dir>/<name>.log`), stopped at exit:
-    SIGINT, then SIGKILL after `STOP_GRACE_S` seconds."""
+def child(name: str, args: list[str], log_dir: Path, wrapper: tuple[str, ...] = (),
+          append: bool = False) -> Iterator[subprocess.Popen]:
+    """`[wrapper…] python -m ddvs_service.cli ARGS` in its own process (output to `<log_dir>/<name>.log`, appended
+    when `append`), stopped at exit: SIGINT, then SIGKILL after `STOP_GRACE_S` seconds."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    with open(log_dir / f"{name}.log", "w", encoding="utf-8") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "ddvs_service.cli", *args], cwd=ROOT, stdout=log,
+    with open(log_dir / f"{name}.log", "a" if append else "w", encoding="utf-8") as log:
+        proc = subprocess.Popen([*wrapper, sys.executable, "-m", "ddvs_service.cli", *args], cwd=ROOT, stdout=log,
                                 stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
             yield proc
@@ -128,11 +156,62 @@ def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> dict
 def run_arm(settings: ArmRunSettings, progress: Callable[[dict[str, Any]], None] | None = None) -> ArmRunResult:
     """Run the whole sequence of the module docstring; `progress(snapshot)` is called about once per second with
     a `clients.monitor.Monitor` snapshot plus `images` and `elapsed_s`."""
+    with open_arm_run(settings) as run:
+        return run.wait_for_convergence(progress)
+
+
+class ArmRun:
+    """A started run (steps 1–3 done, recording): its children by name, this process's Zenoh `session`, the
+    `monitor` of the servo and the `keys`. Children may be killed and restarted; `wait_for_convergence` is step 4."""
+
+    def __init__(self, settings: ArmRunSettings, stack: ExitStack, commands: dict[str, list[str]],
+                 session: Any, started: float) -> None:
+        from clients.monitor import Monitor
+        from ddvs_service.protocol import Keys
+
+        self.settings, self.session, self.started = settings, session, started
+        self.keys = Keys(settings.prefix, settings.robot)
+        self.log_dir = settings.out_dir / "logs"
+        self._stack, self._commands = stack, commands
+        self.children = {name: self._start(name, args) for name, args in commands.items()}
+        self.monitor = Monitor(session, self.keys, window=1.0)
+        stack.callback(self.monitor.close)
+
+    def _start(self, name: str, args: list[str], append: bool = False) -> subprocess.Popen:
+        wrapper = self.settings.launch.get(name, ChildLaunch()).wrapper
+        return self._stack.enter_context(child(name, args, self.log_dir, wrapper, append))
+
+    def kill(self, name: str) -> None:
+        """SIGKILL the child `name` (no clean-up on its side: no last zero twist, no goodbye) and reap it."""
+        proc = self.children[name]
+        proc.kill()
+        proc.wait()
+
+    def restart(self, name: str) -> None:
+        """Start the child `name` again with its original arguments except `--fresh` (a service resumes from its
+        persisted state); its output is appended to its log."""
+        if self.children[name].poll() is None:
+            raise RuntimeError(f"`ddvs {name}` is still running (pid {self.children[name].pid}); kill it first")
+        args = [a for a in self._commands[name] if a != "--fresh"]
+        self.children[name] = self._start(name, args, append=True)
+
+    def check_children(self) -> None:
+        """Raise `RuntimeError` with the end of its log when a child process has exited."""
+        _check_children(self.children, self.log_dir)
+
+    def wait_for_convergence(self, progress: Callable[[dict[str, Any]], None] | None = None) -> ArmRunResult:
+        """Step 4: until CONVERGED for `settle_images` images, or a limit; images count across service restarts."""
+        return _wait_for_convergence(self.settings, self.monitor, self.started, progress, self.settings.out_dir,
+                                     self.children)
+
+
+@contextmanager
+def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
+    """Steps 1–3 of the module docstring; yields the started, recording run; step 5 (stop everything) at exit."""
     from clients.ctl import send_command
-    from clients.monitor import Monitor
     from clients.record import Recorder, recording_meta
     from clients.recording import RecordingWriter
-    from ddvs_service.protocol import Command, Keys, ReferenceImage, SessionConfig, encode_upload, open_session
+    from ddvs_service.protocol import Command, ReferenceImage, SessionConfig, encode_upload, open_session
 
     out = settings.out_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -140,35 +219,41 @@ def run_arm(settings: ArmRunSettings, progress: Callable[[dict[str, Any]], None]
     import cv2
 
     cv2.imwrite(str(out / "reference.png"), reference)
-    keys = Keys(settings.prefix, settings.robot)
     sim_port, serve_port = _free_port(), _free_port()
-    (out / "serve.json").write_text(json.dumps(service_config(settings, serve_port, sim_port), indent=2))
+    serve = service_config(settings, serve_port, sim_port)
+    if settings.launch.get("serve", ChildLaunch()).zenoh is not None:
+        serve["zenoh"] = {}  # the launch flags give the endpoints
+    (out / "serve.json").write_text(json.dumps(serve, indent=2))
     common = ["--prefix", settings.prefix, "--robot", settings.robot]
+    loopback = {
+        "sim": ["--listen", f"tcp/127.0.0.1:{sim_port}"],
+        "serve": [],
+        "bridge": ["--connect", f"tcp/127.0.0.1:{sim_port},tcp/127.0.0.1:{serve_port}"],
+    }
+    launch_flags = {name: settings.launch.get(name, ChildLaunch()).zenoh for name in CHILDREN}
+    zenoh_args = {name: loopback[name] if flags is None else list(flags) for name, flags in launch_flags.items()}
+    commands = {
+        "sim": ["sim", "arm", "--config", str(settings.scene), "--clock", settings.clock, "--fps", str(settings.fps),
+                "--lockstep-timeout", "2", "--start", "start", *zenoh_args["sim"], *common],
+        "serve": ["serve", "--config", str(out / "serve.json"), "--fresh", *zenoh_args["serve"]],
+        "bridge": ["bridge", "--config", str(settings.bridge), *zenoh_args["bridge"], *common],
+    }
+    driver = (SessionConfig.model_validate(dict(settings.driver_session)) if settings.driver_session is not None
+              else SessionConfig(connect=[f"tcp/127.0.0.1:{sim_port}", f"tcp/127.0.0.1:{serve_port}"]))
     started = time.monotonic()
     with ExitStack() as stack:
-        commands = {
-            "sim": ["sim", "arm", "--config", str(settings.scene), "--clock", settings.clock, "--fps",
-                    str(settings.fps), "--lockstep-timeout", "2", "--start", "start",
-                    "--listen", f"tcp/127.0.0.1:{sim_port}", *common],
-            "serve": ["serve", "--config", str(out / "serve.json"), "--fresh"],
-            "bridge": ["bridge", "--config", str(settings.bridge), "--connect",
-                       f"tcp/127.0.0.1:{sim_port},tcp/127.0.0.1:{serve_port}", *common],
-        }
-        children = {name: stack.enter_context(child(name, args, out / "logs")) for name, args in commands.items()}
-        session = stack.enter_context(open_session(SessionConfig(
-            connect=[f"tcp/127.0.0.1:{sim_port}", f"tcp/127.0.0.1:{serve_port}"])))
-        monitor = Monitor(session, keys, window=1.0)
-        stack.callback(monitor.close)
-        while not monitor.status_received.wait(0.2):
-            _check_children(children, out / "logs")
+        session = stack.enter_context(open_session(driver))
+        run = ArmRun(settings, stack, commands, session, started)
+        while not run.monitor.status_received.wait(0.2):
+            run.check_children()
             if time.monotonic() - started > settings.time_limit:
                 raise RuntimeError(f"no status from the service within the time limit; see {out / 'logs'}")
         meta = {"reference_pose": T_world_ref.reshape(-1).tolist(), "law": settings.law,
                 "template": list(settings.template), "clock": settings.clock, "fps": settings.fps,
                 "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene)}
-        writer = RecordingWriter(out / "recording", recording_meta(keys, meta))
+        writer = RecordingWriter(out / "recording", recording_meta(run.keys, meta))
         stack.callback(writer.close)
-        recorder = Recorder(session, keys, writer)
+        recorder = Recorder(session, run.keys, writer)
         stack.callback(recorder.close)
         stop_recording = threading.Event()
         recorder_thread = threading.Thread(target=recorder.run, args=(stop_recording,), daemon=True)
@@ -177,10 +262,10 @@ def run_arm(settings: ArmRunSettings, progress: Callable[[dict[str, Any]], None]
         stack.callback(stop_recording.set)
         upload = ReferenceImage(format="png", data=encode_upload(reference, "png"))
         for command in (Command(op="set_reference", source="upload", image=upload), Command(op="start")):
-            reply = send_command(session, keys, command, timeout=30.0)
+            reply = send_command(session, run.keys, command, timeout=30.0)
             if reply is None or not reply.ok:
                 raise RuntimeError(f"{command.op} failed: {'no reply' if reply is None else reply.error}")
-        return _wait_for_convergence(settings, monitor, started, progress, out, children)
+        yield run
 
 
 def _check_children(children: dict[str, subprocess.Popen], log_dir: Path) -> None:
@@ -194,16 +279,18 @@ def _check_children(children: dict[str, subprocess.Popen], log_dir: Path) -> Non
 def _wait_for_convergence(settings: ArmRunSettings, monitor: Any, started: float,
                           progress: Callable[[dict[str, Any]], None] | None, out: Path,
                           children: dict[str, subprocess.Popen]) -> ArmRunResult:
-    first_seq: int | None = None
+    images = 0
+    last_seq: int | None = None
     next_report = time.monotonic()
     converged_since: int | None = None
     while True:
         snap = monitor.snapshot()
         elapsed = time.monotonic() - started
         seq = snap.get("seq")
-        if snap["state"] == "SERVOING" and first_seq is None and seq is not None:
-            first_seq = seq
-        images = 0 if first_seq is None or seq is None else seq - first_seq
+        if snap["state"] in ("SERVOING", "CONVERGED") and seq is not None:
+            if last_seq is not None:
+                images += seq - last_seq if seq >= last_seq else seq  # seq restarts with a restarted service
+            last_seq = seq
         if snap["state"] == "CONVERGED":
             converged_since = images if converged_since is None else converged_since
             if images - converged_since >= settings.settle_images:
