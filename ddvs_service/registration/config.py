@@ -40,7 +40,7 @@ class RegistrationConfig:
     min_valid_ratio: float = 0.3
     step_tolerance_px: float = 1e-3
     coarse_step_tolerance_px: float = 0.05
-    tracking_levels: int = 2
+    tracking_levels: int = 1
     max_step_fraction: float = 0.25
     scale_floor: float = 0.5
     min_level_size: int = 16
