@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("current", help="current image file, same size as the reference")
     parser.add_argument("--roi", nargs=4, type=int, metavar=("X", "Y", "W", "H"), help="ROI in reference pixels")
     parser.add_argument("--init", metavar="H_FILE", help="initial homography: 3×3 text file (numpy.loadtxt)")
-    parser.add_argument("--levels", type=int, default=3, help="pyramid levels (default 3)")
+    parser.add_argument("--levels", type=int, help="pyramid levels at most (default: as many as the ROI size allows)")
     parser.add_argument("--gain-grid", default="1x1", metavar="RxC", help="gain grid rows x cols (default 1x1)")
     parser.add_argument("--robust", choices=("huber", "tukey", "none"), default="huber", help="M-estimator")
 
@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError(f"cannot read image {path!r}")
             images.append(to_grey(img))
         G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
-        config = RegistrationConfig(levels=args.levels, gain_grid=_grid(args.gain_grid), robust=args.robust)
+        levels = {} if args.levels is None else {"levels": args.levels}
+        config = RegistrationConfig(**levels, gain_grid=_grid(args.gain_grid), robust=args.robust)
         start = time.perf_counter()
         result = register(images[0], images[1], roi=None if args.roi is None else tuple(args.roi), G0=G0,
                           config=config)

@@ -69,9 +69,14 @@ def test_up_to_10px_without_pyramid(texture, H_true):
     assert abs(np.linalg.det(result.G) - 1.0) < 1e-9
 
 
-def test_large_motion_with_pyramid(texture):
-    H_true = similarity_about(CENTRE, (40.0, -10.0), 20.0, 1.15)
-    result = register(texture, warp(texture, H_true), roi=ROI, config=RegistrationConfig(levels=4))
+@pytest.mark.parametrize(
+    "H_true",
+    [similarity_about(CENTRE, (40.0, -10.0), 20.0, 1.15), similarity_about(CENTRE, (40.0, 0.0), 0.0, 1.0)],
+)
+def test_large_motion_with_the_default_pyramid(texture, H_true):
+    """40 px + 20° + 15 % scale, and 40 px of pure translation, from identity with the default configuration: the
+    levels follow from the ROI size (200×150 → 4 levels, coarsest 25×18 px)."""
+    result = register(texture, warp(texture, H_true), roi=ROI)
     assert result.converged, result.reason
     assert len(result.iterations) == 4
     assert corner_error(H_true, result.H) < 0.02
