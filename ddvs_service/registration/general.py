@@ -265,11 +265,14 @@ class GeneralRegistration:
 
     def track(
         self, current: F32, G0: F64, e0: F64, rho: F64, gains0: ArrayLike | float = 1.0, beta0: float = 0.0,
-        scale0: float | None = None, information: bool = True,
+        scale0: float | None = None, information: bool = True, first_level: int | None = None,
     ) -> GeneralResult:
         """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
-        when ρ* is 0 (planar). `information`: also evaluate the information on ρ* at the solution (one more pass)."""
-        pyramid = build_pyramid(current, len(self.levels))
+        when ρ* is 0 (planar). `information`: also evaluate the information on ρ* at the solution (one more pass).
+        `first_level`: the coarsest pyramid level solved (0 = full resolution only; default the coarsest), as
+        `PlanarRegistration.run`: a warm start with small predicted motion skips the coarse levels."""
+        levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
+        pyramid = build_pyramid(current, len(levels))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
         state = _State(np.asarray(G0, dtype=np.float64).copy(), np.asarray(e0, dtype=np.float64).copy(),
                        np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0)
@@ -277,7 +280,7 @@ class GeneralRegistration:
         free_e = bool(np.any(state.c != 0.0))
         iterations: list[int] = []
         converged, reason = False, ""
-        for level in reversed(self.levels):
+        for level in reversed(levels):
             n, converged, reason, failed = self._solve(level, pyramid, state, free_e=free_e, free_rho=False)
             iterations.append(n)
             if failed:
@@ -329,8 +332,11 @@ class GeneralRegistration:
     def _solve(
         self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool
     ) -> tuple[int, bool, str, bool]:
-        """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure)."""
+        """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure). Converged: the last
+        step moved the probe points by less than `step_tolerance_px` (full resolution) at the finest level, by less
+        than `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level)."""
         cfg = self.config.base
+        tolerance = cfg.step_tolerance_px if level.index == 0 else cfg.coarse_step_tolerance_px
         ref, cur = self.reference[level.index], pyramid[level.index]
         nr = self.basis.size if free_rho else 0
         ng = self.grid[0] * self.grid[1]
@@ -373,7 +379,7 @@ class GeneralRegistration:
             before = warp_points(state.G, state.e, self.basis, state.c, self._probe)
             new = self._apply(state, delta, D, D_inv, N, N_inv, nr, ng, 1.0)
             step_px = float(np.max(np.abs(warp_points(new.G, new.e, self.basis, new.c, self._probe) - before)))
-            step = step_px * D[0, 0]
+            step = step_px * D[0, 0]  # level pixels
             limit = cfg.max_step_fraction * level.size
             if not step <= limit:
                 factor = limit / step if math.isfinite(step) else 0.0
@@ -381,8 +387,8 @@ class GeneralRegistration:
             state.G, state.e, state.c, state.gains, state.beta = new.G, new.e, new.c, new.gains, new.beta
             if free_rho and free_e:
                 self._fix_scale(state)
-            if step < cfg.step_tolerance_px:
-                return it, True, f"converged: last step {step:.1e} px < {cfg.step_tolerance_px:g} px", False
+            if step < tolerance:
+                return it, True, f"converged: last step {step:.1e} px < {tolerance:g} px", False
         return cfg.max_iterations, False, f"max_iterations ({cfg.max_iterations}) reached at level {level.index}", False
 
     def _apply(

@@ -3,8 +3,10 @@
 - First frame (or after LOST): `G` from the global initialiser; when no ρ* is known yet it is estimated on that
   frame (several epipole starts, `general.GeneralRegistration.estimate`), else `e` restarts from 0 with ρ* kept.
 - Every other frame: `G`, `e`, `S`, `β` warm-started from the last good frame, ρ* held fixed (13 unknowns with one
-  gain), so ρ* cannot drift when the camera stops translating (`e → 0`). The information on ρ* (given `e`) of each
-  converged frame is added to `rho_information`; it grows only while the camera translates.
+  gain), so ρ* cannot drift when the camera stops translating (`e → 0`). Like the planar `Tracker`, the frame is
+  solved on the finest `tracking_levels` pyramid levels first, and again over the whole pyramid when that fails.
+  The information on ρ* (given `e`) of each converged frame is added to `rho_information`; it grows only while
+  the camera translates.
 - A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags);
   `lost_after` consecutive failures declare LOST (flag `lost`), and the next frame re-acquires `G` and `e` globally.
 `track` never raises and never returns non-finite numbers.
@@ -104,7 +106,11 @@ class GeneralTracker:
                 return result
             return problem.track(current, G0, np.zeros(3), self._rho)
         assert self._rho is not None
-        return problem.track(current, self._G, self._e, self._rho, self._gains, self._beta, self._scale)
+        warm = (current, self._G, self._e, self._rho, self._gains, self._beta, self._scale)
+        result = problem.track(*warm, first_level=problem.config.base.tracking_levels - 1)
+        if not result.converged and len(result.iterations) < len(problem.levels):
+            result = problem.track(*warm)
+        return result
 
     def _count_failure(self, result: GeneralResult) -> GeneralResult:
         self._failures += 1
