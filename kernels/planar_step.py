@@ -9,14 +9,15 @@ For every reference pixel `p*` of the region of interest (level pixels, `u` = co
   - gain block: `φ_k(p*) · Iw` with `φ_k` the bilinear (tent) basis of the R×C gain grid;
   - bias: 1;
 - robust weight `w(r / σ)` (0 none, 1 Huber k = 1.345, 2 Tukey c = 4.685), σ supplied by the caller;
-- sums: upper triangle of `Jᵀ W J`, `Jᵀ W r`, statistics (valid and inlier counts, Σ r²), and a log-spaced
-  histogram of `|r|` whose median gives the next MAD scale.
+- sums: upper triangle of `Jᵀ W J` (built per row from 12 moments, see `row_sums`), `Jᵀ W r`, statistics (valid
+  and inlier counts, Σ r²), and a histogram of `|r|` binned on its float32 bits (16 bins per octave, no logarithm)
+  whose median gives the next MAD scale.
 
 Pixels whose reference value or reference neighbours are masked (set to `MASKED`, ≤ `MASK_LIMIT` after
-filtering) or whose five warped samples are
-not all inside the current image are excluded. Reductions follow PLATFORM-NOTES: each thread owns a band of rows,
-accumulates in registers row by row and writes one partial; a second serial pass adds the partials. Parameters
-come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array (`work_size`).
+filtering) or whose five warped samples are not all inside the current image are excluded. Reductions follow
+PLATFORM-NOTES: each thread owns a band of rows, warps them, accumulates in registers row by row and writes one
+partial; a second serial pass adds the partials. Parameters come in one float32 array (`PARAMS_*` offsets) and
+every result goes to one float32 work array (`work_size`).
 """
 
 
