@@ -1,8 +1,8 @@
 """`ddvs experiment synthetic`: the paper's synthetic experiment (see `sim.experiment_synthetic`).
 
-Prints a human-readable summary, or one JSON line with `--json` (converged, images to convergence, the paper's
-count, final translation (m) and rotation (deg) errors, retreat (m), coupling measures), and saves plots of v(t)
-and of the 3-D trajectory into `--out` (default reports/synthetic).
+Prints a human-readable summary, or one JSON line with `--json` (law, geometry source, converged, why it stopped,
+images to convergence, the paper's count, final translation (m) and rotation (deg) errors, retreat (m), coupling
+measures), and saves plots of v(t) and of the 3-D trajectory into `--out` (default reports/synthetic).
 """
 
 from __future__ import annotations
@@ -13,14 +13,17 @@ from pathlib import Path
 
 # The geometry sources offered on the command line; keep in step with experiment_synthetic.GEOMETRY_SOURCES
 # (listed here so that `ddvs --help` does not import numpy and the plant).
-GEOMETRIES = ("exact",)
+GEOMETRIES = ("exact", "estimated")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
     sp = sub.add_parser("synthetic", help="servo to the reference pose in front of the horse saddle (paper IV-A)")
     sp.add_argument("--law", choices=("dvs", "ddvs"), required=True, help="dvs: reduced error (13); ddvs: (16)")
-    sp.add_argument("--geometry", choices=GEOMETRIES, default="exact", help="source of G, e, rho* (default exact)")
+    sp.add_argument("--geometry", choices=GEOMETRIES, default="exact",
+                    help="source of G, e, rho*: exact (ground truth, default) or estimated (general tracker on "
+                         "rendered images)")
+    sp.add_argument("--texture", help="texture image of the saddle for rendered frames (default: Oxford graf)")
     sp.add_argument("--t", nargs=3, type=float, metavar=("TX", "TY", "TZ"), help="initial translation (m)")
     sp.add_argument("--r", nargs=3, type=float, metavar=("RX", "RY", "RZ"), help="initial rotation vector (rad)")
     sp.add_argument("--threshold", type=float, default=1e-3, help="stop threshold on the error norm (default 1e-3)")
@@ -33,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.experiment_synthetic import GEOMETRY_SOURCES, PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
+    from sim.experiment_synthetic import PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
 
     setup = SyntheticSetup(
         t=tuple(args.t) if args.t else PAPER_T,
@@ -42,8 +45,9 @@ def run(args: argparse.Namespace) -> int:
         threshold=args.threshold,
         max_images=args.max_images,
         scaling=args.scaling,
+        **({"texture": args.texture} if args.texture else {}),
     )
-    result = run_synthetic(args.law, setup, GEOMETRY_SOURCES[args.geometry]())
+    result = run_synthetic(args.law, setup, args.geometry)
     summary = result.summary()
     if not args.no_plots:
         summary["plots"] = [str(p) for p in save_plots(result, args.out, setup)]

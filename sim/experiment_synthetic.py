@@ -2,8 +2,13 @@
 saddle, by the DVS (reduced error (13), `v = λ ε'`) or the decoupled DVS ((16), `c*' = m*'`, `v = Λ ε̄`).
 
 The loop: observe a frame (plant), get `(G, e, ρ*)` from a pluggable geometry source, compute the twist, apply it for
-one sampling period. `GEOMETRY_SOURCES` maps a name to a source; "exact" feeds the ground truth (no images). A source
-that estimates from images declares `needs_image = True` and receives rendered frames.
+one sampling period. `GEOMETRY_SOURCES` maps a name to a source factory, called with the `Scene` (intrinsics and the
+reference image, never poses or depth):
+- "exact" feeds the ground truth (no images);
+- "estimated" closes the loop on rendered images (`SyntheticSetup.texture` on the saddle) with the general tracker
+  of eq. (2) (`GeneralTracker`: global initialisation and ρ* estimated on the first frame, then warm-started
+  tracking of `G`, `e`, gain and bias with ρ* fixed) over the paper's 200×150 ROI centred on the control point.
+  No ground truth enters the loop; a frame the tracker cannot register stops the run with its reason.
 
 Measures (all from the plant's ground truth, never used by the control):
 - `images`: number of images processed up to and including the first whose error norm is below the threshold.
@@ -32,7 +37,7 @@ from numpy.typing import NDArray
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
-from sim.freeflyer import Frame, FreeFlyer
+from sim.freeflyer import Frame, FreeFlyer, render_view
 from sim.surfaces import paper_saddle
 
 F64 = NDArray[np.float64]
@@ -40,6 +45,8 @@ F64 = NDArray[np.float64]
 PAPER_T = (0.17, -0.11, 0.01)
 PAPER_R = (-0.1, -0.31, 1.04)
 PAPER_IMAGES = {"dvs": 905, "ddvs": 762}
+PAPER_ROI_SIZE = (200, 150)  # pixels used by the paper's synthetic experiment, centred on the control point
+TEXTURE = "/work/shared/datasets/oxford/graf/img1.png"
 LAW_NAMES = {"dvs": "dvs_reduced", "ddvs": "ddvs"}
 
 
@@ -51,6 +58,15 @@ class GeometrySource(Protocol):
     def __call__(self, frame: Frame) -> tuple[F64, F64, float]: ...
 
 
+@dataclass(frozen=True)
+class Scene:
+    """What a geometry source may know: the intrinsics and the reference image (rendered at the reference pose;
+    None when the source needs no images)."""
+
+    intrinsics: Intrinsics
+    reference: NDArray[np.float32] | None
+
+
 class ExactGeometry:
     """The ground truth `G`, `e`, `ρ*` of the frame (no image needed)."""
 
@@ -60,15 +76,52 @@ class ExactGeometry:
         return frame.truth.G, frame.truth.e, frame.truth.rho
 
 
-GEOMETRY_SOURCES: dict[str, Callable[[], GeometrySource]] = {"exact": ExactGeometry}
+class TrackingLost(RuntimeError):
+    """The image-based geometry source could not register a frame (the message says why)."""
+
+
+class EstimatedGeometry:
+    """`(G, e, ρ*(m*))` estimated from the rendered frames by `GeneralTracker` (module docstring); the control
+    point is the principal point, the ROI `PAPER_ROI_SIZE` centred on it. Raises `TrackingLost` on a frame that
+    does not converge (the loop must not servo on a stale estimate)."""
+
+    needs_image = True
+
+    def __init__(self, scene: Scene) -> None:
+        from ddvs_service.registration.general_tracker import GeneralTracker
+
+        if scene.reference is None:
+            raise ValueError("the estimated geometry needs the reference image")
+        intr = scene.intrinsics
+        w, h = PAPER_ROI_SIZE
+        roi = (round(intr.cx - 0.5 * (w - 1)), round(intr.cy - 0.5 * (h - 1)), w, h)
+        self.control_point = (intr.cx, intr.cy)
+        self.tracker = GeneralTracker(scene.reference, roi)
+        self.iterations: list[int] = []
+
+    def __call__(self, frame: Frame) -> tuple[F64, F64, float]:
+        if frame.image is None:
+            raise ValueError("the estimated geometry needs rendered frames")
+        result = self.tracker.track(frame.image)
+        if not result.converged:
+            raise TrackingLost(f"frame {frame.index}: {result.reason} (flags {result.flags})")
+        self.iterations.append(sum(result.iterations))
+        return result.G, result.e, result.rho_at(self.control_point)
+
+
+GEOMETRY_SOURCES: dict[str, Callable[[Scene], GeometrySource]] = {
+    "exact": lambda scene: ExactGeometry(),
+    "estimated": EstimatedGeometry,
+}
 
 
 @dataclass(frozen=True)
 class SyntheticSetup:
     """The experiment's parameters (paper values by default): initial pose of the camera in the reference frame
     (`t` metres, rotation vector `r` radians), focal length `f` (px), image size, saddle centre depth and
-    parameter `a` (m), sampling period `dt` (s), gain, stop threshold on the error norm, an image budget, and the
-    scale gauge of `G` ("sl3": det G = 1 like an estimator; "euclidean")."""
+    parameter `a` (m), sampling period `dt` (s), gain, stop threshold on the error norm, an image budget, the
+    scale gauge of `G` ("sl3": det G = 1 like an estimator; "euclidean") and the texture image file of the saddle
+    (rendered frames only)."""
 
     t: tuple[float, float, float] = PAPER_T
     r: tuple[float, float, float] = PAPER_R
@@ -82,6 +135,7 @@ class SyntheticSetup:
     threshold: float = 1e-3
     max_images: int = 20000
     scaling: str = "sl3"
+    texture: str = TEXTURE
 
 
 @dataclass
@@ -89,6 +143,7 @@ class ExperimentResult:
     """Outcome and traces of one run (traces have one row per processed image)."""
 
     law: str
+    geometry: str
     converged: bool
     images: int
     paper_images: int
@@ -98,6 +153,7 @@ class ExperimentResult:
     coupling: float
     coupling_near_equilibrium: float
     path_excess: float
+    stopped: str
     time: F64 = field(repr=False)
     twists: F64 = field(repr=False)
     error_norms: F64 = field(repr=False)
@@ -109,24 +165,33 @@ class ExperimentResult:
         return {k: v for k, v in asdict(self).items() if not isinstance(v, np.ndarray)}
 
 
-def run_synthetic(
-    law: str, setup: SyntheticSetup = SyntheticSetup(), source: GeometrySource | None = None
-) -> ExperimentResult:
-    """Run the closed loop for `law` ("dvs" or "ddvs") until the error norm is below `setup.threshold` or
-    `setup.max_images` images were processed."""
+def run_synthetic(law: str, setup: SyntheticSetup = SyntheticSetup(), geometry: str = "exact") -> ExperimentResult:
+    """Run the closed loop for `law` ("dvs" or "ddvs") with the `geometry` source (a key of `GEOMETRY_SOURCES`)
+    until the error norm is below `setup.threshold`, `setup.max_images` images were processed or the source lost
+    the target (`stopped` says which)."""
     if law not in LAW_NAMES:
         raise ValueError(f"unknown law {law!r}; expected one of {sorted(LAW_NAMES)}")
-    source = source or ExactGeometry()
+    if geometry not in GEOMETRY_SOURCES:
+        raise ValueError(f"unknown geometry source {geometry!r}; expected one of {sorted(GEOMETRY_SOURCES)}")
     intr = Intrinsics.centred(setup.f, setup.width, setup.height)
     saddle = paper_saddle(setup.depth, setup.a)
     control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=setup.gain, stop_threshold=setup.threshold), intr)
-    plant = FreeFlyer(saddle, intr, np.eye(4), pose(so3_exp(setup.r), setup.t), setup.dt, scaling=setup.scaling)
+    texture = _load_texture(setup.texture) if geometry != "exact" else None
+    plant = FreeFlyer(saddle, intr, np.eye(4), pose(so3_exp(setup.r), setup.t), setup.dt, texture=texture,
+                      scaling=setup.scaling)
+    reference = None if texture is None else render_view(saddle, texture, intr, np.eye(4))[0]
+    source = GEOMETRY_SOURCES[geometry](Scene(intr, reference))
     target = saddle.T_world_surface[:3, 3]
     twists, norms, positions, rotations, rot_driven, angles = [], [], [], [], [], []
     out = None
+    stopped = f"image budget ({setup.max_images}) exhausted"
     for _ in range(setup.max_images):
         frame = plant.observe(render=source.needs_image)
-        G, e, rho = source(frame)
+        try:
+            G, e, rho = source(frame)
+        except TrackingLost as exc:
+            stopped = f"geometry source lost the target: {exc}"
+            break
         out = control.compute(G, e, rho)
         R_cur_ref = frame.truth.T_cur_ref[:3, :3]
         G_rot = intr.K @ R_cur_ref @ intr.K_inv
@@ -137,9 +202,11 @@ def run_synthetic(
         positions.append(frame.T_world_cam[:3, 3])
         rotations.append(frame.T_world_cam[:3, :3])
         if out.converged:
+            stopped = f"error norm {out.error_norm:.2e} below the threshold {setup.threshold:g}"
             break
         plant.move(out.twist)
-    assert out is not None
+    if out is None:
+        raise TrackingLost(stopped)
     T_cur_ref = pose_inv(plant.T_world_cam)
     pos = np.array(positions)
     tw = np.array(twists)
@@ -147,6 +214,7 @@ def run_synthetic(
     path = float(np.sum(np.linalg.norm(np.diff(pos, axis=0), axis=1)))
     return ExperimentResult(
         law=law,
+        geometry=geometry,
         converged=bool(out.converged),
         images=len(norms),
         paper_images=PAPER_IMAGES[law],
@@ -156,12 +224,23 @@ def run_synthetic(
         coupling=_coupling(tw[:, :3], np.array(rot_driven), np.ones(len(tw), dtype=bool)),
         coupling_near_equilibrium=_coupling(tw[:, :3], np.array(rot_driven), np.array(angles) < 5.0),
         path_excess=path / float(np.linalg.norm(pos[0])) - 1.0,
+        stopped=stopped,
         time=np.arange(len(norms)) * setup.dt,
         twists=tw,
         error_norms=np.array(norms),
         positions=pos,
         rotations=np.array(rotations),
     )
+
+
+def _load_texture(path: str) -> NDArray[np.float32]:
+    """The grey texture image at `path` as float32 grey levels."""
+    import cv2
+
+    image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise ValueError(f"cannot read the texture image {path!r}")
+    return image.astype(np.float32)
 
 
 def _coupling(v: F64, v_rot: F64, mask: NDArray[np.bool_]) -> float:
