@@ -34,7 +34,9 @@ class BridgeLimits:
     - `braking_time`: seconds; a joint moving towards a limit may go at most `distance_left / braking_time`.
     - `singular_threshold`: smallest singular value of J below which damping starts (m/rad or rad/rad per unit).
     - `max_damping`: λ reached at a singular value of 0 (λ² = (1 − (σ/threshold)²) max_damping²).
-    - `deadman`: seconds after the last twist at which the bridge outputs zero velocities.
+    - `deadman`: seconds after the last twist at which the bridge outputs zero velocities; also the oldest twist
+      (by stamp, on the plant's clock) the bridge node acts on.
+    - `max_linear` (m/s), `max_angular` (rad/s): a twist beyond these norms is rejected, not executed.
     """
 
     velocity_scale: float = 1.0
@@ -43,6 +45,8 @@ class BridgeLimits:
     singular_threshold: float = 0.02
     max_damping: float = 0.05
     deadman: float = 0.1
+    max_linear: float = 1.0
+    max_angular: float = 3.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.velocity_scale <= 1.0:
@@ -50,7 +54,7 @@ class BridgeLimits:
         for name in ("position_margin", "singular_threshold", "max_damping"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)}")
-        for name in ("braking_time", "deadman"):
+        for name in ("braking_time", "deadman", "max_linear", "max_angular"):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be > 0 seconds, got {getattr(self, name)}")
 

@@ -21,9 +21,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from clients.bridge import load_bridge
     from clients.bridge_node import BridgeNode
+    from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    setup_logging("INFO")
     bridge = load_bridge(args.config)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

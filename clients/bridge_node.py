@@ -4,7 +4,13 @@ Subscribes `servo_twist` (`TwistStamped`, camera frame) and `arm_joint_states`; 
 (`JointState` with the bridge's joint names and `velocity`, stamped with the stamp of the twist it realises, so a
 lockstep plant can match it to its frame). A command is published at once for every new twist (from the newest
 joint state) and again every `1/rate` seconds, so a plant always has a fresh command; when the newest twist is
-older than the deadman (wall time since arrival) the commands are zero velocities.
+older than the deadman (wall time since arrival) the commands are zero velocities (still stamped with that twist's
+stamp, so a lockstep plant never mistakes them for the answer to a newer frame).
+
+Defence in depth (`ddvs_service.protocol.guard.CommandGuard`): a twist is acted on only when its key is exactly this
+robot's twist key, it decodes, it is finite, within `BridgeLimits.max_linear`/`max_angular`, and its stamp is no
+older than the deadman on the plant's clock (the newest joint-state stamp; the service stamps twists with the frame's
+stamp, which the plant made). Every rejection is logged and counted (`guard.rejections`).
 """
 
 from __future__ import annotations
@@ -26,9 +32,9 @@ from ddvs_service.protocol import (
     Time,
     declare_publisher,
     decode_joint_state,
-    decode_twist_stamped,
     encode_joint_state,
 )
+from ddvs_service.protocol.guard import CommandGuard, CommandLimits
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +53,16 @@ class BridgeNode:
         self._publisher = declare_publisher(session, keys, "arm_joint_velocity")
         self._q: NDArray[np.float64] | None = None
         self._twist_stamp = Time(0, 0)
+        self._plant_stamp_ns: int | None = None
+        limits = bridge.limits
+        self.guard = CommandGuard(keys, limits.deadman, CommandLimits(linear=limits.max_linear,
+                                                                      angular=limits.max_angular),
+                                  clock=self._plant_clock)
         self.published = 0
+
+    def _plant_clock(self) -> int:
+        """The plant's time: the newest joint-state stamp (ns), the wall clock before any arrived."""
+        return self._plant_stamp_ns if self._plant_stamp_ns is not None else time.time_ns()
 
     def close(self) -> None:
         self._twists.close()
@@ -65,6 +80,7 @@ class BridgeNode:
             if missing:
                 raise ValueError(f"joint state lacks joints {missing} (has {msg.name})")
             self._q = np.array([by_name[n] for n in self.bridge.joint_names], dtype=np.float64)
+            self._plant_stamp_ns = msg.header.stamp.to_ns()
         except ValueError as exc:
             log.warning("ignoring joint state: %s", exc)
 
@@ -72,15 +88,11 @@ class BridgeNode:
         sample = self._twists.recv(timeout) if timeout > 0 else self._twists.try_recv()
         if sample is None:
             return False
-        try:
-            msg = decode_twist_stamped(sample.payload.to_bytes())
-            twist = np.r_[msg.linear, msg.angular]
-            if not np.all(np.isfinite(twist)):
-                raise ValueError(f"twist must be finite, got {twist}")
-        except ValueError as exc:
-            log.warning("ignoring twist: %s", exc)
+        self._take_joint_state()
+        msg = self.guard.twist(str(sample.key_expr), sample.payload.to_bytes())
+        if msg is None:
             return False
-        self.bridge.set_twist(twist, time.monotonic())
+        self.bridge.set_twist(np.r_[msg.linear, msg.angular], time.monotonic())
         self._twist_stamp = msg.header.stamp
         return True
 

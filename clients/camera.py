@@ -240,9 +240,10 @@ def run(args: argparse.Namespace) -> int:
 
     import cv2
 
+    from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    setup_logging("INFO")
     capture = _open_capture(args.source)
     if args.calibration is not None:
         calibration = load_calibration(args.calibration)

@@ -197,9 +197,10 @@ def run(args: argparse.Namespace) -> int:
     import signal
 
     from clients.recording import RecordingWriter
+    from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    setup_logging("INFO")
     keys = Keys(args.prefix, args.robot)
     writer = RecordingWriter(args.out, recording_meta(keys, _parse_meta(args.meta)))
     stop = threading.Event()

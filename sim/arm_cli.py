@@ -30,12 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
     from sim.arm import ArmSim
     from sim.arm_node import ArmNode, ArmNodeSettings
     from sim.arm_scene import load_scene_config
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    setup_logging("INFO")
     config = load_scene_config(args.config)
     settings = ArmNodeSettings(args.clock, args.fps, args.deadman, args.lockstep_timeout, args.frames)
     sim = ArmSim(config)

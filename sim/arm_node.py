@@ -35,13 +35,13 @@ from ddvs_service.protocol import (
     LatestSubscriber,
     Time,
     declare_publisher,
-    decode_joint_state,
     dump,
     encode_camera_info,
     encode_image,
     encode_joint_state,
     image_from_array,
 )
+from ddvs_service.protocol.guard import CommandGuard, CommandLimits
 from sim.arm import ArmSim
 
 log = logging.getLogger(__name__)
@@ -88,6 +88,10 @@ class ArmNode:
         self._commands = LatestSubscriber(session, keys.arm_joint_velocity)
         self._command: _Command | None = None
         self._epoch_ns = time.time_ns()
+        # Defence in depth: only this robot's key, stamps within the deadman on the simulated clock, known joints,
+        # finite velocities within the URDF limits (plus rounding slack); every rejection logged and counted.
+        bounds = {n: float(v) * (1 + 1e-6) + 1e-9 for n, v in zip(sim.joint_names, sim.kinematics.velocity_limit)}
+        self.guard = CommandGuard(keys, settings.deadman, CommandLimits(joint_velocity=bounds), clock=self.stamp_ns)
         self.frames = 0
         self.dropped = 0
         self.render_seconds = 0.0  # total time spent in `ArmSim.render` (mean = render_seconds / frames)
@@ -126,26 +130,18 @@ class ArmNode:
         sample = self._commands.recv(timeout) if timeout > 0 else self._commands.try_recv()
         if sample is None:
             return False
-        try:
-            msg = decode_joint_state(sample.payload.to_bytes())
-            velocity = self._velocity_by_name(msg)
-        except ValueError as exc:  # protocol decoding errors are ValueErrors too
-            log.warning("ignoring joint velocity command: %s", exc)
+        msg = self.guard.joint_velocity(str(sample.key_expr), sample.payload.to_bytes())
+        if msg is None:
             return False
+        velocity = self._velocity_by_name(msg)
         self._command = _Command(velocity, msg.header.stamp.to_ns(), time.monotonic())
         return True
 
     def _velocity_by_name(self, msg: JointState) -> NDArray[np.float64]:
-        if len(msg.velocity) != len(msg.name):
-            raise ValueError(f"command has {len(msg.name)} names but {len(msg.velocity)} velocities")
-        unknown = [n for n in msg.name if n not in self.sim.joint_names]
-        if unknown:
-            raise ValueError(f"command names unknown joints {unknown}; this arm has {self.sim.joint_names}")
+        """Velocities in this arm's joint order (the guard checked names, count, finiteness and bounds)."""
         velocity = np.zeros(len(self.sim.joint_names))
         for name, v in zip(msg.name, msg.velocity):
             velocity[self.sim.joint_names.index(name)] = v
-        if not np.all(np.isfinite(velocity)):
-            raise ValueError(f"command velocities must be finite, got {velocity}")
         return velocity
 
     def _zero(self) -> NDArray[np.float64]:

@@ -54,6 +54,7 @@ def _process(*args: str) -> Iterator[subprocess.Popen]:
         except subprocess.TimeoutExpired:
             proc.kill()
             out, _ = proc.communicate()
+        proc.output = out  # type: ignore[attr-defined]
         print(out[-3000:])
 
 
@@ -179,3 +180,26 @@ def test_sim_and_bridge_processes_reproduce_a_camera_twist():
     r_err = np.linalg.norm(so3_log(expected[:3, :3].T @ moved[:3, :3])) / np.linalg.norm(twist[3:] * 0.5)
     print(f"over Zenoh at 30 Hz: translation error {100 * t_err:.3f} %, rotation error {100 * r_err:.3f} %")
     assert t_err < 0.01 and r_err < 0.01
+
+
+def test_sim_refuses_foreign_and_out_of_range_commands():
+    """Defence in depth: in lockstep, a command on another robot's key or beyond the URDF velocity limits does not
+    move the arm (the sim holds still after its timeout) and the rejection is logged."""
+    port = free_port()
+    args = ("sim", "arm", "--config", str(SCENE), "--clock", "lockstep", "--fps", "30", "--lockstep-timeout", "0.4",
+            "--start", "reference", "--listen", f"tcp/127.0.0.1:{port}")
+    with _process(*args) as proc, _session(port) as session:
+        joints = LatestSubscriber(session, KEYS.arm_joint_states)
+        foreign = session.declare_publisher(Keys("ddvs", "intruder").arm_joint_velocity)
+        commands = session.declare_publisher(KEYS.arm_joint_velocity)
+        state = decode_joint_state(_recv(joints, 30.0, "joint state"))
+        state = decode_joint_state(_recv(joints, 2.0, "joint state"))
+        too_fast = np.array([0.05, -0.04, 0.03, 0.02, -0.06, 10.0])  # 10 rad/s > the UR5's 3.15 rad/s
+        foreign.put(_command(state.name, np.full(6, 0.05), state.header.stamp))
+        commands.put(_command(state.name, too_fast, state.header.stamp))
+        held = decode_joint_state(_recv(joints, 2.0, "joint state after the timeout"))
+        np.testing.assert_allclose(held.position, state.position, atol=2e-6)
+        joints.close()
+        foreign.undeclare()
+        commands.undeclare()
+    assert "command rejected" in proc.output and "out_of_range" in proc.output

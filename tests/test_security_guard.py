@@ -14,10 +14,10 @@ import pytest
 import zenoh
 from conftest import free_port
 
+from ddvs_service.logs import JsonFormatter
 from ddvs_service.protocol import Header, JointState, Keys, Time, TwistStamped
 from ddvs_service.protocol.guard import REASONS, CommandGuard, CommandLimits
 from ddvs_service.protocol.ros import encode_joint_state, encode_twist_stamped
-from ddvs_service.service.logs import JsonFormatter
 
 KEYS = Keys("ddvs", "ur5")
 NOW_NS = 1_700_000_000_000_000_000
@@ -163,3 +163,10 @@ def test_guard_behind_a_wildcard_subscription_acts_only_on_its_robot() -> None:
             accepted.append(msg)
     assert len(samples) == 2 and len(accepted) == 1
     assert guard.rejections == {"foreign_key": 1}
+
+
+def test_a_stale_stop_command_is_still_honoured() -> None:
+    guard = make_guard()
+    assert guard.joint_velocity(KEYS.arm_joint_velocity, joints([0.0, 0.0, 0.0], age_s=5.0)) is not None
+    assert guard.joint_velocity(KEYS.arm_joint_velocity, joints([0.0, 0.1, 0.0], age_s=5.0)) is None
+    assert guard.rejections["stale"] == 1

@@ -9,7 +9,8 @@ a sample that arrived is a command to act on. A command is accepted only when al
   refuses non-finite values);
 - its header stamp is not older than `deadman_s` (`stale`) nor later than `future_tolerance_s` (`future`) on the
   receiver's clock (`clock`, nanoseconds since the Unix epoch: `time.time_ns` by default; a plant that stamps in
-  simulated time passes its own stamp clock);
+  simulated time passes its own stamp clock) — except a joint-velocity command of all zeros: stopping is always
+  allowed, however old the stamp (a bridge whose own deadman fired keeps sending zeros with its last twist's stamp);
 - its joint velocities are finite (`non_finite`) and its values within `CommandLimits` (`out_of_range`); a
   joint-velocity command must carry one velocity per named joint (`no_velocity`), name each joint once and, with
   per-joint limits, only known joints (`unknown_joint`).
@@ -124,7 +125,8 @@ class CommandGuard:
             msg = decode_joint_state(payload)
         except ProtocolError as exc:
             return self._reject("malformed", topic, key, str(exc))
-        if not self._fresh(topic, key, msg.header.stamp.to_ns()):
+        stop = msg.velocity.size > 0 and not np.any(msg.velocity)
+        if not stop and not self._fresh(topic, key, msg.header.stamp.to_ns()):
             return None
         if not msg.name or msg.velocity.size != len(msg.name):
             return self._reject("no_velocity", topic, key, f"{msg.velocity.size} velocities for joints {msg.name}; "

@@ -22,6 +22,7 @@ import numpy as np
 import zenoh
 from numpy.typing import NDArray
 
+from ddvs_service.logs import fields
 from ddvs_service.protocol import (
     Command,
     Counters,
@@ -47,8 +48,8 @@ from ddvs_service.protocol import (
     open_session,
     parse_command,
 )
+from ddvs_service.protocol.security import warn_if_insecure
 from ddvs_service.service.config import ServiceConfig
-from ddvs_service.service.logs import fields
 from ddvs_service.service.persistence import StateStore
 from ddvs_service.service.pipeline import ServoPipeline, StepResult
 from ddvs_service.service.state import ServoState, TransitionError
@@ -129,6 +130,7 @@ class ServoNode:
     # --- main loop ----------------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         """Serve until `stop` is set. Publishes a zero twist and closes every Zenoh object before returning."""
+        warn_if_insecure(self.config.zenoh, log)
         session = open_session(self.config.zenoh)
         try:
             self._serve(session, stop)

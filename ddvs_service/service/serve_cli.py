@@ -22,9 +22,9 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
+    from ddvs_service.logs import setup_logging
     from ddvs_service.protocol.session import session_config_from_args
     from ddvs_service.service.config import ServiceConfig
-    from ddvs_service.service.logs import setup_logging
     from ddvs_service.service.node import ServoNode
 
     setup_logging(args.log_level)

@@ -1,4 +1,4 @@
-"""Structured log lines for headless deployment: one JSON object per line on stderr.
+"""Structured log lines for every ddvs node (headless deployment): one JSON object per line on stderr.
 
 Each line has `ts` (Unix seconds), `level`, `logger`, `msg` and any keyword fields passed as `extra={"fields": {...}}`.
 """
