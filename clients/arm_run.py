@@ -62,7 +62,8 @@ class ArmRunSettings:
     processed while servoing, `time_limit` seconds of wall time for the whole run; `settle_images` CONVERGED
     images required before finishing; `robot`/`prefix` of the keys; `launch` per child name how it starts
     (default: loopback mesh, this interpreter); `driver_session` the `SessionConfig` fields of this process's session
-    (default: a peer connecting to the sim's and the service's loopback ports)."""
+    (default: a peer connecting to the sim's and the service's loopback ports); `start_servo` False: `open_arm_run`
+    uploads the reference but leaves the `start` to the caller (`ArmRun.command("start")`)."""
 
     out_dir: Path
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
@@ -80,6 +81,7 @@ class ArmRunSettings:
     prefix: str = "ddvs"
     launch: Mapping[str, ChildLaunch] = field(default_factory=dict)
     driver_session: Mapping[str, Any] | None = None
+    start_servo: bool = True
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.launch) - set(CHILDREN))
@@ -173,6 +175,7 @@ class ArmRun:
         self.keys = Keys(settings.prefix, settings.robot)
         self.log_dir = settings.out_dir / "logs"
         self._stack, self._commands = stack, commands
+        self._killed: set[str] = set()  # killed on purpose and not restarted yet: not an error
         self.children = {name: self._start(name, args) for name, args in commands.items()}
         self.monitor = Monitor(session, self.keys, window=1.0)
         stack.callback(self.monitor.close)
@@ -186,6 +189,7 @@ class ArmRun:
         proc = self.children[name]
         proc.kill()
         proc.wait()
+        self._killed.add(name)
 
     def restart(self, name: str) -> None:
         """Start the child `name` again with its original arguments except `--fresh` (a service resumes from its
@@ -194,21 +198,32 @@ class ArmRun:
             raise RuntimeError(f"`ddvs {name}` is still running (pid {self.children[name].pid}); kill it first")
         args = [a for a in self._commands[name] if a != "--fresh"]
         self.children[name] = self._start(name, args, append=True)
+        self._killed.discard(name)
+
+    def command(self, command: Any) -> None:
+        """Send a `ddvs_service.protocol.Command` to the service; `RuntimeError` when refused or unanswered (30 s)."""
+        from clients.ctl import send_command
+
+        reply = send_command(self.session, self.keys, command, timeout=30.0)
+        if reply is None or not reply.ok:
+            raise RuntimeError(f"{command.op} failed: {'no reply' if reply is None else reply.error}")
 
     def check_children(self) -> None:
-        """Raise `RuntimeError` with the end of its log when a child process has exited."""
-        _check_children(self.children, self.log_dir)
+        """Raise `RuntimeError` with the end of its log when a child process has exited (unless it was `kill`ed)."""
+        _check_children(self._expected_alive(), self.log_dir)
+
+    def _expected_alive(self) -> dict[str, subprocess.Popen]:
+        return {name: proc for name, proc in self.children.items() if name not in self._killed}
 
     def wait_for_convergence(self, progress: Callable[[dict[str, Any]], None] | None = None) -> ArmRunResult:
         """Step 4: until CONVERGED for `settle_images` images, or a limit; images count across service restarts."""
         return _wait_for_convergence(self.settings, self.monitor, self.started, progress, self.settings.out_dir,
-                                     self.children)
+                                     self._expected_alive())
 
 
 @contextmanager
 def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
     """Steps 1–3 of the module docstring; yields the started, recording run; step 5 (stop everything) at exit."""
-    from clients.ctl import send_command
     from clients.record import Recorder, recording_meta
     from clients.recording import RecordingWriter
     from ddvs_service.protocol import Command, ReferenceImage, SessionConfig, encode_upload, open_session
@@ -261,10 +276,9 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
         stack.callback(recorder_thread.join)
         stack.callback(stop_recording.set)
         upload = ReferenceImage(format="png", data=encode_upload(reference, "png"))
-        for command in (Command(op="set_reference", source="upload", image=upload), Command(op="start")):
-            reply = send_command(session, run.keys, command, timeout=30.0)
-            if reply is None or not reply.ok:
-                raise RuntimeError(f"{command.op} failed: {'no reply' if reply is None else reply.error}")
+        run.command(Command(op="set_reference", source="upload", image=upload))
+        if settings.start_servo:
+            run.command(Command(op="start"))
         yield run
 
 
