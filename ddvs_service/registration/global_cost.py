@@ -1,10 +1,12 @@
-"""Robust photometric cost of a warp hypothesis over the reference ROI (ranks and selects global hypotheses).
+"""Robust photometric cost of warp hypotheses over the reference ROI (ranks and selects global hypotheses).
 
 For the reference template `t` (ROI pixels) and the current image sampled at the warped ROI pixels `c` (bilinear,
 through `kernels/global_warp.py`), an affine photometric model `t ≈ a·c + b` (the gain/bias of (4), one global gain)
-is fitted by least squares with `a ≥ 0`. Each residual `r = t − (a·c + b)` is scaled by the template's standard
-deviation `σ_t` and costs `ρ(x) = x² / (x² + κ²)` (Geman–McClure, bounded by 1); ROI pixels that fall outside the
-current image cost 1. The cost is the mean over all ROI pixels: 0 for a perfect match, ≈ 0.8 for an unrelated patch.
+is fitted by least squares over the visible pixels with `a ≥ 0`. Each residual `r = t − (a·c + b)` is scaled by the
+template's standard deviation `σ_t` and costs `ρ(x) = x² / (x² + κ²)` (Geman–McClure, bounded by 1).
+`cost` is the mean over all ROI pixels, those outside the current image costing 1 (ranks hypotheses: one that pushes
+the ROI out of the image is not rewarded); `cost_visible` is the mean over the visible pixels only (the quality of
+the match itself, whatever the visible fraction). Both are 0 for a perfect match, ≈ 0.8 for an unrelated patch.
 """
 
 from __future__ import annotations
@@ -14,48 +16,67 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kernels.global_warp import warp_homography
+from kernels.global_warp import warp_homographies
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
+MIN_VISIBLE_PIXELS = 16
 
 
 @dataclass(frozen=True)
 class PhotometricScore:
-    """`cost` ∈ [0, 1] (lower is better), zero-mean normalised correlation `zncc` over the visible ROI pixels, and
-    the `visible` fraction of the ROI inside the current image."""
+    """`cost` and `cost_visible` ∈ [0, 1] (lower is better, module docstring), zero-mean normalised correlation
+    `zncc` over the visible ROI pixels, and the `visible` fraction of the ROI inside the current image."""
 
     cost: float
+    cost_visible: float
     zncc: float
     visible: float
 
 
 def sample_through(image: F32, H: F64, shape: tuple[int, int], offset: tuple[float, float]) -> tuple[F32, F32]:
-    """Sample `image` at `H · [c + offset_u, r + offset_v, 1]` for an output of `shape`; return (values, valid)."""
-    out = np.empty(shape, np.float32)
-    valid = np.empty(shape, np.float32)
-    warp_homography(image, out, valid, np.ascontiguousarray(H, np.float32).ravel(), float(offset[0]), float(offset[1]))
-    return out, valid
+    """Sample `image` at `H · [c + offset_u, r + offset_v, 1]` for an output of `shape` (one Taichi launch).
+    `H` is one 3×3 matrix (returns (values, valid) of `shape`) or a stack (N, 3, 3) (returns (N, *shape) arrays)."""
+    Hs = np.asarray(H, dtype=np.float32)
+    single = Hs.ndim == 2
+    Hs = np.ascontiguousarray(Hs.reshape(-1, 9))
+    out = np.empty((len(Hs), *shape), np.float32)
+    valid = np.empty_like(out)
+    warp_homographies(np.ascontiguousarray(image, np.float32), out, valid, Hs, float(offset[0]), float(offset[1]))
+    return (out[0], valid[0]) if single else (out, valid)
+
+
+def photometric_scores(template: F32, sampled: F32, valid: F32, kappa: float = 0.5) -> list[PhotometricScore]:
+    """Scores of a stack of current-image samplings `sampled` (N, h, w) with masks `valid` against `template` (h, w)."""
+    if sampled.ndim != 3 or sampled.shape[1:] != template.shape or valid.shape != sampled.shape:
+        raise ValueError(f"expected sampled and valid of shape (N, {template.shape}), "
+                         f"got sampled {sampled.shape}, valid {valid.shape}")
+    n = template.size
+    m = (valid > 0.5).reshape(len(sampled), n).astype(np.float64)
+    t = template.reshape(1, n).astype(np.float64)
+    c = sampled.reshape(len(sampled), n).astype(np.float64)
+    n_vis = m.sum(axis=1)
+    safe = np.maximum(n_vis, 1.0)
+    tc = (t - (m * t).sum(axis=1, keepdims=True) / safe[:, None]) * m
+    cc = (c - (m * c).sum(axis=1, keepdims=True) / safe[:, None]) * m
+    var_t, var_c, cov = (tc * tc).sum(axis=1), (cc * cc).sum(axis=1), (tc * cc).sum(axis=1)
+    gain = np.where(var_c > 0, np.maximum(cov, 0.0) / np.where(var_c > 0, var_c, 1.0), 0.0)
+    r = (tc - gain[:, None] * cc) / max(float(template.std()), 1e-6)
+    rho = (r * r / (r * r + kappa * kappa) * m).sum(axis=1)
+    denom = np.sqrt(var_t * var_c)
+    zncc = np.where(denom > 0, cov / np.where(denom > 0, denom, 1.0), 0.0)
+    scores = []
+    for k in range(len(sampled)):
+        if n_vis[k] < MIN_VISIBLE_PIXELS:
+            scores.append(PhotometricScore(cost=1.0, cost_visible=1.0, zncc=0.0, visible=float(n_vis[k]) / n))
+        else:
+            scores.append(PhotometricScore(cost=float(rho[k] + n - n_vis[k]) / n, cost_visible=float(rho[k] / n_vis[k]),
+                                           zncc=float(zncc[k]), visible=float(n_vis[k]) / n))
+    return scores
 
 
 def photometric_score(template: F32, sampled: F32, valid: F32, kappa: float = 0.5) -> PhotometricScore:
-    """Score current-image values `sampled` (with `valid` mask) against the reference `template` (same shape)."""
+    """Score one current-image sampling `sampled` (with `valid` mask) against the reference `template` (same shape)."""
     if template.shape != sampled.shape or template.shape != valid.shape:
         raise ValueError(f"shapes differ: template {template.shape}, sampled {sampled.shape}, valid {valid.shape}")
-    n = template.size
-    mask = valid > 0.5
-    visible = float(mask.sum()) / n
-    if mask.sum() < 16:
-        return PhotometricScore(cost=1.0, zncc=0.0, visible=visible)
-    t = template[mask].astype(np.float64)
-    c = sampled[mask].astype(np.float64)
-    sigma_t = max(float(template.std()), 1e-6)
-    tc, cc = t - t.mean(), c - c.mean()
-    var_c = float(cc @ cc)
-    gain = max(float(tc @ cc) / var_c, 0.0) if var_c > 0 else 0.0
-    r = (tc - gain * cc) / sigma_t
-    rho = r * r / (r * r + kappa * kappa)
-    cost = (float(rho.sum()) + (n - len(t))) / n
-    denom = np.sqrt(float(tc @ tc) * var_c)
-    zncc = float(tc @ cc) / denom if denom > 0 else 0.0
-    return PhotometricScore(cost=cost, zncc=zncc, visible=visible)
+    return photometric_scores(template, sampled[None], valid[None], kappa)[0]

@@ -16,12 +16,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ddvs_service.registration.global_cost import PhotometricScore, photometric_score, sample_through
-from kernels.global_warp import warp_homography
+from ddvs_service.registration.global_cost import PhotometricScore, photometric_scores, sample_through
+from ddvs_service.registration.images import build_pyramid, level_matrix
 from kernels.logpolar import logpolar_resample
 
 F32 = NDArray[np.float32]
@@ -41,10 +40,11 @@ class FourierMellinConfig:
     translation_peaks: int = 2  # translation peaks kept per (θ, s)
     context: float = 2.5  # reference spectrum window = ROI grown by this factor (clipped to the image)
     whitening_floor: float = 1e-2  # phase correlation: X / (|X| + floor · max|X|)
-    search_width: int = 160  # hypotheses are searched on images downsampled to at most this width
+    search_width: int = 160  # search on the pyramid level that brings the current image to at most this width …
+    min_search_roi: int = 32  # … unless the ROI would fall below this many pixels a side there
     grid_rotations: int = 18  # uniform rotation grid over 360° added to the log-polar peaks
     grid_scales: int = 3  # scales of the grid, log-spaced strictly inside scale_range
-    max_hypotheses: int = 12  # best translation peaks (by correlation height) scored at full resolution
+    max_hypotheses: int = 12  # best translation peaks (by correlation height) scored at the search level
 
 
 @dataclass(frozen=True)
@@ -190,112 +190,166 @@ def disc(shape: tuple[int, int], centre: tuple[float, float], radius: float) -> 
     return ((u - centre[0]) ** 2 + (v - centre[1]) ** 2 <= radius * radius).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class TranslationPeak:
+    """A translation peak of the template turned by `theta` (radians) and scaled by `scale`: its NCC `value` and
+    where the template centre lands in the current image (`centre`, search pixels)."""
+
+    value: float
+    theta: float
+    scale: float
+    centre: tuple[float, float]
+
+
 class TranslationSearch:
-    """Normalised cross-correlation of a rotated/scaled disc template against the zero-padded current image, by FFT.
+    """Normalised cross-correlation of rotated/scaled disc templates against the zero-padded current image, by FFT.
 
-    The template is the disc inscribed in the ROI, so the current image's local sums under it depend only on the
-    scale: they are computed once per scale and reused for every rotation. Positions whose local variance is below
-    `(0.05 σ_I)²` per pixel (flat or empty areas) are not trusted."""
+    Every (θ, s) template is rendered in one Taichi launch into a small odd-sized box (the template centre at the box
+    centre), and all are correlated in one batched FFT. The template is the disc inscribed in the ROI, so the current
+    image's local sums under it depend only on the scale: computed once per scale. Positions whose local variance is
+    below `(0.05 σ_I)²` per pixel (flat or empty areas) are not trusted."""
 
-    def __init__(self, current: F32, margin: int, radius: float) -> None:
+    def __init__(self, current: F32, template: F32, max_scale: float) -> None:
+        h, w = template.shape
+        self.template = np.ascontiguousarray(template, np.float32)
+        self.radius = 0.5 * min(w, h)
+        half = int(np.ceil(max_scale * self.radius)) + 1
+        self.box = 2 * half + 1
+        self.box_centre = float(half)
+        self.margin = half
         Hc, Wc = current.shape
-        self.shape = (_dft_size(Hc + 2 * margin), _dft_size(Wc + 2 * margin))
-        self.margin = margin
-        self.radius = radius
+        self.shape = (_dft_size(Hc + 2 * half), _dft_size(Wc + 2 * half))
         padded = np.zeros(self.shape, np.float32)
-        padded[margin : margin + Hc, margin : margin + Wc] = current - current.mean()
+        padded[half : half + Hc, half : half + Wc] = current - current.mean()
         self.spectrum = np.fft.rfft2(padded)
         self.spectrum_sq = np.fft.rfft2(padded * padded)
         self.var_floor = (0.05 * float(current.std())) ** 2
-        self.centre = (float(self.shape[1] // 2), float(self.shape[0] // 2))
-        self._local_std: dict[float, tuple[F32, F32]] = {}
+        self._local_std: dict[float, F32] = {}
 
-    def _disc_stats(self, scale: float) -> tuple[F32, F32]:
-        """(disc mask at the canvas centre, local standard deviation × √N of the current image under it)."""
+    def _masks(self, scales: F64) -> F32:
+        """Disc masks (N, box, box) of radius `s · radius` around the box centre."""
+        v, u = np.mgrid[0 : self.box, 0 : self.box] - self.box_centre
+        r2 = (u * u + v * v)[None]
+        return (r2 <= (scales[:, None, None] * self.radius) ** 2).astype(np.float32)
+
+    def _local_std_for(self, scale: float, mask: F32) -> F32:
+        """Local standard deviation × √N of the current image under the disc of this scale at every shift."""
         if scale not in self._local_std:
-            mask = disc(self.shape, self.centre, scale * self.radius)
-            F = np.conj(np.fft.rfft2(mask))
+            F = np.conj(np.fft.rfft2(mask, s=self.shape))
             n = float(mask.sum())
             s1 = np.fft.irfft2(self.spectrum * F, s=self.shape)
             s2 = np.fft.irfft2(self.spectrum_sq * F, s=self.shape)
-            var = np.maximum(s2 - s1 * s1 / n, n * self.var_floor)
-            self._local_std[scale] = (mask, np.sqrt(var).astype(np.float32))
+            self._local_std[scale] = np.sqrt(np.maximum(s2 - s1 * s1 / n, n * self.var_floor)).astype(np.float32)
         return self._local_std[scale]
 
-    def peaks(
-        self, template: F32, theta: float, scale: float, k: int
-    ) -> list[tuple[float, tuple[float, float]]]:
-        """Up to k (NCC value, where the template centre lands in the current image) for the template turned by θ
-        and scaled by s."""
-        h, w = template.shape
-        mask, local_std = self._disc_stats(scale)
-        to_patch = np.linalg.inv(similarity(theta, scale, ((w - 1) / 2.0, (h - 1) / 2.0), self.centre))
-        canvas = np.empty(self.shape, np.float32)
-        valid = np.empty(self.shape, np.float32)
-        warp_homography(template, canvas, valid, np.ascontiguousarray(to_patch, np.float32).ravel(), 0.0, 0.0)
-        inside = mask * valid
-        canvas = (canvas - float((canvas * inside).sum()) / max(float(inside.sum()), 1.0)) * inside
-        norm = float(np.sqrt((canvas * canvas).sum()))
-        if norm == 0.0:
-            return []
-        ncc = np.fft.irfft2(self.spectrum * np.conj(np.fft.rfft2(canvas)), s=self.shape) / (norm * local_std)
+    def peaks(self, rotations_scales: list[tuple[float, float]], k: int) -> list[TranslationPeak]:
+        """Up to k translation peaks for each (θ, s): the template turned by θ and scaled by s."""
+        h, w = self.template.shape
+        c = self.box_centre
+        to_template = np.stack([np.linalg.inv(similarity(t, s, ((w - 1) / 2.0, (h - 1) / 2.0), (c, c)))
+                                for t, s in rotations_scales])
+        boxes, valid = sample_through(self.template, to_template, (self.box, self.box), (0.0, 0.0))
+        scales = np.array([s for _, s in rotations_scales])
+        inside = self._masks(scales) * valid
+        count = np.maximum(inside.sum(axis=(1, 2)), 1.0)
+        boxes = (boxes - ((boxes * inside).sum(axis=(1, 2)) / count)[:, None, None]) * inside
+        norms = np.sqrt((boxes * boxes).sum(axis=(1, 2)))
         ch, cw = self.shape
         found = []
-        for r, c in peaks(ncc.astype(np.float32), k, radius=max(2, int(0.5 * scale * self.radius))):
-            dr = r if r < ch / 2 else r - ch
-            dc = c if c < cw / 2 else c - cw
-            value = float(ncc[round(r) % ch, round(c) % cw])
-            found.append((value, (self.centre[0] + dc - self.margin, self.centre[1] + dr - self.margin)))
+        for i, (theta, scale) in enumerate(rotations_scales):
+            if norms[i] == 0.0:
+                continue
+            # one candidate at a time: the batched transform is slower (its complex arrays leave the cache)
+            corr = np.fft.irfft2(self.spectrum * np.conj(np.fft.rfft2(boxes[i], s=self.shape)), s=self.shape)
+            ncc = corr / (norms[i] * self._local_std_for(scale, self._masks(scales[i : i + 1])[0]))
+            for r, col in peaks(ncc, k, radius=max(2, int(0.5 * scale * self.radius))):
+                # cyclic shift (r, col) puts the box centre at padded pixel (c + col, c + r) mod the canvas
+                value = float(ncc[round(r) % ch, round(col) % cw])
+                centre = ((c + col) % cw - self.margin, (c + r) % ch - self.margin)
+                found.append(TranslationPeak(value, theta, scale, (float(centre[0]), float(centre[1]))))
         return found
 
 
-def _rescale_pixels(factor: float) -> F64:
-    """Homography from full-resolution pixel centres to those of an image downsampled by `factor`."""
-    return np.array([[1.0 / factor, 0.0, 0.5 / factor - 0.5], [0.0, 1.0 / factor, 0.5 / factor - 0.5], [0, 0, 1.0]])
+@dataclass(frozen=True)
+class SearchPair:
+    """The reference and current images at pyramid level `level` (`images.build_pyramid`, `D` = full-resolution →
+    level pixels), the ROI there (`roi`, the same pixels as the planar engine's level) and its template. Hypotheses
+    are searched and ranked at this resolution."""
+
+    level: int
+    D: F64
+    reference: F32
+    current: F32
+    roi: Roi
+    template: F32
+
+    @staticmethod
+    def build(reference: F32, roi: Roi, current: F32, cfg: FourierMellinConfig) -> SearchPair:
+        """The coarsest level at which the ROI keeps `cfg.min_search_roi` pixels a side, and no coarser than needed
+        to bring the current image down to `cfg.search_width` pixels wide."""
+        x, y, w, h = roi
+        level = 0
+        while (min(w, h) >> (level + 1)) >= cfg.min_search_roi and (current.shape[1] >> level) > cfg.search_width:
+            level += 1
+        ref_pyr, cur_pyr = build_pyramid(reference, level + 1), build_pyramid(current, level + 1)
+        k = 2**level
+        u0, v0 = -(-x // k), -(-y // k)
+        u1, v1 = (x + w) // k - 1, (y + h) // k - 1
+        sroi = (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
+        template = np.ascontiguousarray(ref_pyr[level][v0 : v1 + 1, u0 : u1 + 1])
+        return SearchPair(level, level_matrix(level), ref_pyr[level], cur_pyr[level], sroi, template)
+
+    def to_level(self, G: F64) -> F64:
+        """A full-resolution warp expressed in level pixels (`D G D⁻¹`)."""
+        return self.D @ G @ np.linalg.inv(self.D)
+
+    def to_full(self, G_level: F64) -> F64:
+        """A level warp expressed in full-resolution pixels (`D⁻¹ G D`), det 1."""
+        G = np.linalg.inv(self.D) @ G_level @ self.D
+        return G / np.cbrt(np.linalg.det(G))
+
+    def scores(self, Gs: list[F64]) -> list[PhotometricScore]:
+        """Robust photometric scores (`global_cost`) of full-resolution warps, evaluated at this level."""
+        if not Gs:
+            return []
+        x, y, w, h = self.roi
+        sampled, valid = sample_through(self.current, np.stack([self.to_level(G) for G in Gs]), (h, w), (x, y))
+        return photometric_scores(self.template, sampled, valid)
 
 
 def rotation_scale_grid(cfg: FourierMellinConfig) -> list[tuple[float, float]]:
     """Uniform (θ, s) grid over ±180° and the scale range: guarantees coverage where the spectrum peaks miss."""
     lo, hi = cfg.scale_range
-    thetas = np.arange(cfg.grid_rotations) * (2.0 * np.pi / cfg.grid_rotations)
+    thetas = np.arange(cfg.grid_rotations) * (2.0 * np.pi / max(cfg.grid_rotations, 1))
     scales = np.exp(np.linspace(np.log(lo), np.log(hi), cfg.grid_scales + 2)[1:-1])
     return [(float(t), float(s)) for t in thetas for s in scales]
 
 
-def fourier_mellin_hypotheses(reference: F32, roi: Roi, current: F32, cfg: FourierMellinConfig) -> list[Hypothesis]:
-    """Ranked similarity hypotheses (lowest photometric cost first) for the reference ROI in the current image.
+def rotation_scale_stages(search: SearchPair, cfg: FourierMellinConfig) -> list[list[tuple[float, float]]]:
+    """(θ, s) candidates in two stages: the log-polar peaks (θ and θ + π), then the uniform grid (the fallback
+    where the spectrum peaks miss; the initialiser searches it only when the first stage gave no clear winner)."""
+    window = reference_window(search.reference, search.roi, cfg.context)
+    peaks_mod_pi = rotation_scale_candidates(window, search.current, cfg)
+    return [[(t, s) for t_mod_pi, s in peaks_mod_pi for t in (t_mod_pi, t_mod_pi + np.pi)], rotation_scale_grid(cfg)]
 
-    Search runs on images downsampled so the current one is at most `cfg.search_width` wide; (θ, s) candidates are
-    the log-polar peaks (θ and θ + π) followed by the uniform grid; every candidate's translation peaks are ranked by
-    correlation height and the best `cfg.max_hypotheses` are scored photometrically at full resolution."""
-    x, y, w, h = roi
-    factor = max(1.0, current.shape[1] / cfg.search_width)
-    D = _rescale_pixels(factor)
-    small_ref = cv2.resize(reference, None, fx=1.0 / factor, fy=1.0 / factor, interpolation=cv2.INTER_AREA)
-    small_cur = cv2.resize(current, None, fx=1.0 / factor, fy=1.0 / factor, interpolation=cv2.INTER_AREA)
-    sx0, sy0 = D[0, 0] * x + D[0, 2], D[1, 1] * y + D[1, 2]
-    sx, sy = int(np.floor(sx0 + 0.5)), int(np.floor(sy0 + 0.5))
-    sw, sh = max(8, round(w / factor)), max(8, round(h / factor))
-    sroi = (sx, sy, sw, sh)
-    template = np.ascontiguousarray(small_ref[sy : sy + sh, sx : sx + sw])
-    window = reference_window(small_ref, sroi, cfg.context)
-    peaks_mod_pi = rotation_scale_candidates(window, small_cur, cfg)
-    candidates = [(t, s) for t_mod_pi, s in peaks_mod_pi for t in (t_mod_pi, t_mod_pi + np.pi)]
-    candidates += rotation_scale_grid(cfg)
-    radius = 0.5 * min(sw, sh)
-    search = TranslationSearch(small_cur, int(np.ceil(cfg.scale_range[1] * radius)) + 1, radius)
-    ranked = []
-    for theta, scale in candidates:
-        for value, centre in search.peaks(template, theta, scale, cfg.translation_peaks):
-            ranked.append((value, theta, scale, centre))
-    ranked.sort(key=lambda item: -item[0])
-    small_centre = (sx + (sw - 1) / 2.0, sy + (sh - 1) / 2.0)
-    full_template = reference[y : y + h, x : x + w]
-    out = []
-    for _, theta, scale, centre in ranked[: cfg.max_hypotheses]:
-        G = np.linalg.inv(D) @ similarity(theta, scale, small_centre, centre) @ D
-        G /= np.cbrt(np.linalg.det(G))
-        sampled, valid = sample_through(current, G, (h, w), (x, y))
-        out.append(Hypothesis(G=G, source="fourier-mellin", score=photometric_score(full_template, sampled, valid)))
-    out.sort(key=lambda hyp: hyp.score.cost)
-    return out
+
+def translation_hypotheses(
+    search: SearchPair, translation: TranslationSearch, candidates: list[tuple[float, float]], cfg: FourierMellinConfig
+) -> list[Hypothesis]:
+    """Similarity hypotheses (full-resolution `G`, lowest photometric cost first) for (θ, s) `candidates`: every
+    candidate's translation peaks are ranked by correlation height and the best `cfg.max_hypotheses` are scored
+    photometrically at the search level."""
+    x, y, w, h = search.roi
+    ranked = sorted(translation.peaks(candidates, cfg.translation_peaks), key=lambda p: -p.value)
+    centre = (x + (w - 1) / 2.0, y + (h - 1) / 2.0)
+    Gs = [search.to_full(similarity(p.theta, p.scale, centre, p.centre)) for p in ranked[: cfg.max_hypotheses]]
+    found = [Hypothesis(G=G, source="fourier-mellin", score=s) for G, s in zip(Gs, search.scores(Gs), strict=True)]
+    return sorted(found, key=lambda hyp: hyp.score.cost)
+
+
+def fourier_mellin_hypotheses(search: SearchPair, cfg: FourierMellinConfig) -> list[Hypothesis]:
+    """Every stage's hypotheses at once (lowest photometric cost first)."""
+    translation = TranslationSearch(search.current, search.template, cfg.scale_range[1])
+    found = [h for stage in rotation_scale_stages(search, cfg) for h in translation_hypotheses(search, translation,
+                                                                                                  stage, cfg)]
+    return sorted(found, key=lambda hyp: hyp.score.cost)

@@ -20,21 +20,30 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from typing import Any, Literal, Protocol
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.registration.global_cost import PhotometricScore, photometric_score, sample_through
 from ddvs_service.registration.global_features import feature_homography
-from ddvs_service.registration.global_fourier_mellin import FourierMellinConfig, Hypothesis, fourier_mellin_hypotheses
+from ddvs_service.registration.global_fourier_mellin import (
+    FourierMellinConfig,
+    Hypothesis,
+    SearchPair,
+    TranslationSearch,
+    fourier_mellin_hypotheses,
+    rotation_scale_stages,
+    translation_hypotheses,
+)
 from ddvs_service.registration.global_scenes import warp_rms
 from kernels import backend
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -50,11 +59,11 @@ class Refinement:
 
 
 class Refiner(Protocol):
-    """Refines a starting warp `G0` of a fixed reference ROI in `current`; may return several refinements
-    (e.g. the general model started from several epipole directions). `quick` asks for a short screening run
-    (few iterations) used to rank many starts before the full refinement of the best ones."""
+    """Refines a starting warp `G0` (full-resolution pixels) of a fixed reference ROI in `current`; may return several
+    refinements (e.g. the general model started from several epipole directions). `first_level`: the coarsest
+    pyramid level worth solving (the start is already within about a pixel there)."""
 
-    def __call__(self, current: F32, G0: F64, quick: bool = False) -> list[Refinement]: ...
+    def __call__(self, current: F32, G0: F64, first_level: int) -> list[Refinement]: ...
 
 
 RefinerFactory = Callable[[F32, Roi], Refiner]
@@ -63,23 +72,36 @@ RefinerFactory = Callable[[F32, Roi], Refiner]
 class PlanarRefiner:
     """The planar direct engine (`registration.planar.PlanarRegistration`, coarse to fine) as a `Refiner`."""
 
-    def __init__(self, reference: F32, roi: Roi, config: Any = None, screen_iterations: int = 4) -> None:
+    def __init__(self, reference: F32, roi: Roi, config: Any = None) -> None:
         from ddvs_service.registration.config import RegistrationConfig
         from ddvs_service.registration.planar import PlanarRegistration
 
         self.roi = roi
-        full = config or RegistrationConfig()
-        self.problem = PlanarRegistration(reference, roi=roi, config=full)
-        quick = replace(full, max_iterations=screen_iterations)
-        self.screen = PlanarRegistration(reference, roi=roi, config=quick)
+        self.problem = PlanarRegistration(reference, roi=roi, config=config or RegistrationConfig())
 
-    def __call__(self, current: F32, G0: F64, quick: bool = False) -> list[Refinement]:
-        result = (self.screen if quick else self.problem).run(current, G0=G0)
+    def __call__(self, current: F32, G0: F64, first_level: int) -> list[Refinement]:
+        result = self.problem.run(current, G0=G0, first_level=first_level)
         if not np.all(np.isfinite(result.G)):
             return []
         x, y, w, h = self.roi
         sampled, valid = sample_through(current, result.G, (h, w), (x, y))
         return [Refinement(G=result.G, sampled=sampled, valid=valid, model="planar", detail=result)]
+
+
+def screen(search: SearchPair, starts: list[F64], iterations: int) -> list[F64]:
+    """Planar refinement of each start at the search level only (a 2-level pyramid over the search ROI, at most
+    `iterations` Gauss-Newton steps per level); returns full-resolution warps (non-finite results dropped)."""
+    from ddvs_service.registration.config import RegistrationConfig
+    from ddvs_service.registration.planar import PlanarRegistration
+
+    config = RegistrationConfig(levels=2, max_iterations=iterations, min_level_size=12, min_valid_ratio=0.2)
+    problem = PlanarRegistration(search.reference, roi=search.roi, config=config)
+    out = []
+    for G in starts:
+        result = problem.run(search.current, G0=search.to_level(G))
+        if np.all(np.isfinite(result.G)):
+            out.append(search.to_full(result.G))
+    return out
 
 
 @dataclass(frozen=True)
@@ -88,12 +110,14 @@ class GlobalInitConfig:
 
     fourier_mellin: FourierMellinConfig = field(default_factory=FourierMellinConfig)
     feature_source: Literal["none", "orb", "akaze"] = "none"
-    max_refined: int = 6  # distinct hypotheses screened by a short refinement
-    final_refined: int = 2  # distinct screened candidates refined fully
+    max_screened: int = 6  # distinct hypotheses screened by a planar refinement at the search level
+    screen_iterations: int = 8  # Gauss-Newton iterations per level of a screening
+    final_refined: int = 2  # distinct screened candidates refined fully (winner and runner-up)
     distinct_px: float = 3.0  # two warps closer than this (RMS over the ROI) are the same solution
-    max_cost: float = 0.3  # winner's robust photometric cost above this → LOST
-    min_margin: float = 0.1  # best different solution's cost minus the winner's below this → LOST
+    max_cost: float = 0.3  # winner's robust cost over its visible pixels above this → LOST
+    min_margin: float = 0.1  # a good different solution's cost minus the winner's below this → LOST
     min_visible: float = 0.5  # winner's visible ROI fraction below this → LOST
+    early_accept_cost: float = 0.1  # an OK winner of the first stage with a visible cost below this ends the search
 
 
 @dataclass(frozen=True)
@@ -164,67 +188,84 @@ class GlobalInitializer:
         self.refiner_factory: RefinerFactory = refiner_factory or PlanarRefiner
 
     def hypotheses(self, reference: F32, roi: Roi, current: F32) -> list[Hypothesis]:
-        """Raw hypotheses, lowest photometric cost first (direct ones, plus the feature one if configured)."""
+        """Raw hypotheses of every stage, lowest photometric cost first (direct ones, plus the feature one if
+        configured)."""
         ref, cur = _check_inputs(reference, roi, current)
-        found = fourier_mellin_hypotheses(ref, roi, cur, self.config.fourier_mellin)
-        if self.config.feature_source != "none":
-            G = feature_homography(ref, roi, cur, self.config.feature_source)
-            if G is not None:
-                x, y, w, h = roi
-                sampled, valid = sample_through(cur, G, (h, w), (x, y))
-                score = photometric_score(ref[y : y + h, x : x + w], sampled, valid)
-                found.append(Hypothesis(G=G, source=self.config.feature_source, score=score))
+        search = SearchPair.build(ref, roi, cur, self.config.fourier_mellin)
+        found = fourier_mellin_hypotheses(search, self.config.fourier_mellin) + self._features(search, ref, roi, cur)
         return sorted(found, key=lambda hyp: hyp.score.cost)
 
+    def _features(self, search: SearchPair, ref: F32, roi: Roi, cur: F32) -> list[Hypothesis]:
+        if self.config.feature_source == "none":
+            return []
+        G = feature_homography(ref, roi, cur, self.config.feature_source)
+        return [] if G is None else [Hypothesis(G=G, source=self.config.feature_source, score=search.scores([G])[0])]
+
     def initialize(self, reference: F32, roi: Roi, current: F32) -> InitResult:
-        """Hypotheses → refinement of the best distinct ones → winner by robust cost, margin, LOST decision."""
-        cfg = self.config
+        """Stage by stage (log-polar peaks and features, then the rotation/scale grid): hypotheses → screening of the
+        best distinct new ones at the search level → full refinement of the best distinct screened ones → winner by
+        robust cost, margin, LOST decision. Stops after the first stage when its winner is OK with a visible cost
+        below `early_accept_cost`."""
+        cfg, fm = self.config, self.config.fourier_mellin
         ref, cur = _check_inputs(reference, roi, current)
-        raw = self.hypotheses(ref, roi, cur)
-        starts: list[Hypothesis] = []
-        for hyp in raw:
-            if len(starts) == cfg.max_refined:
-                break
-            if all(warp_rms(hyp.G, s.G, roi) > cfg.distinct_px for s in starts):
-                starts.append(hyp)
+        search = SearchPair.build(ref, roi, cur, fm)
+        translation = TranslationSearch(search.current, search.template, fm.scale_range[1])
+        refine = self.refiner_factory(ref, roi)
         x, y, w, h = roi
         template = ref[y : y + h, x : x + w]
-        refine = self.refiner_factory(ref, roi)
-
-        def scored(source: str, start_cost: float, G0: F64, quick: bool) -> list[Candidate]:
-            return [
-                Candidate(source, start_cost, r, photometric_score(template, r.sampled, r.valid))
-                for r in refine(cur, G0, quick=quick)
-            ]
-
-        screened = sorted((c for hyp in starts for c in scored(hyp.source, hyp.score.cost, hyp.G, True)),
-                          key=lambda c: c.score.cost)
-        finalists: list[Candidate] = []
-        for c in screened:
-            if len(finalists) == cfg.final_refined:
+        first_level = max(0, search.level - 1)
+        extra = self._features(search, ref, roi, cur)
+        screened: list[tuple[float, F64, Hypothesis]] = []  # (screened cost, screened G, start)
+        refined: dict[int, list[Candidate]] = {}  # by position in `screened`
+        n_raw = 0
+        for stage in rotation_scale_stages(search, fm):
+            raw = sorted(translation_hypotheses(search, translation, stage, fm) + extra, key=lambda h: h.score.cost)
+            extra, n_raw = [], n_raw + len(raw)
+            seen = [G for _, G, _ in screened]
+            fresh = [hyp for hyp in raw if all(warp_rms(hyp.G, G, roi) > cfg.distinct_px for G in seen)]
+            starts = _distinct([(hyp.G, hyp) for hyp in fresh], cfg.max_screened, roi, cfg.distinct_px)
+            Gs = screen(search, [hyp.G for hyp in starts], cfg.screen_iterations)
+            screened += [(score.cost, G, hyp) for score, G, hyp in zip(search.scores(Gs), Gs, starts, strict=True)]
+            order = sorted(range(len(screened)), key=lambda i: screened[i][0])
+            for i in _distinct([(screened[i][1], i) for i in order], cfg.final_refined, roi, cfg.distinct_px):
+                if i not in refined:
+                    _, G, hyp = screened[i]
+                    refined[i] = [Candidate(hyp.source, hyp.score.cost, r, photometric_score(template, r.sampled,
+                                                                                             r.valid))
+                                  for r in refine(cur, G, first_level)]
+            candidates = sorted((c for cs in refined.values() for c in cs), key=lambda c: c.score.cost)
+            result = _decide(candidates, n_raw, roi, cfg)
+            if result.status == "OK" and result.cost <= cfg.early_accept_cost:
                 break
-            if all(warp_rms(c.refinement.G, f.refinement.G, roi) > cfg.distinct_px for f in finalists):
-                finalists.append(c)
-        candidates = [full for c in finalists for full in scored(c.source, c.start_cost, c.refinement.G, False)]
-        candidates.sort(key=lambda c: c.score.cost)
-        return _decide(candidates, len(raw), roi, cfg)
+        return result
+
+
+def _distinct(items: list[tuple[F64, T]], limit: int, roi: Roi, distinct_px: float) -> list[T]:
+    """The first `limit` items whose warps are pairwise farther apart than `distinct_px` RMS over the ROI."""
+    kept: list[tuple[F64, T]] = []
+    for G, item in items:
+        if len(kept) == limit:
+            break
+        if all(warp_rms(G, other, roi) > distinct_px for other, _ in kept):
+            kept.append((G, item))
+    return [item for _, item in kept]
 
 
 def _decide(candidates: list[Candidate], n_raw: int, roi: Roi, cfg: GlobalInitConfig) -> InitResult:
-    """Winner, margin to the best different solution, and the LOST criteria of the module docstring."""
+    """Winner, margin to the best *good* different solution, and the LOST criteria of the module docstring."""
     if not candidates:
         return InitResult("LOST", None, 1.0, 0.0, "no hypothesis could be refined", candidates, n_raw)
     best = candidates[0]
-    different = (c for c in candidates[1:] if warp_rms(c.refinement.G, best.refinement.G, roi) > cfg.distinct_px)
-    rival = next(different, None)
+    rival = next((c for c in candidates[1:] if c.score.cost_visible <= cfg.max_cost
+                  and warp_rms(c.refinement.G, best.refinement.G, roi) > cfg.distinct_px), None)
     margin = (rival.score.cost if rival else 1.0) - best.score.cost
-    cost = best.score.cost
+    cost = best.score.cost_visible
     if cost > cfg.max_cost:
-        reason = f"best robust cost {cost:.3f} above the quality threshold {cfg.max_cost}"
+        reason = f"best robust cost {cost:.3f} (visible pixels) above the quality threshold {cfg.max_cost}"
     elif best.score.visible < cfg.min_visible:
         reason = f"only {best.score.visible:.0%} of the ROI visible (need {cfg.min_visible:.0%})"
     elif margin < cfg.min_margin:
-        reason = f"ambiguous: margin {margin:.3f} to a different solution below {cfg.min_margin}"
+        reason = f"ambiguous: margin {margin:.3f} to a different good solution below {cfg.min_margin}"
     else:
         return InitResult("OK", best.refinement.G, cost, margin, "ok", candidates, n_raw)
     return InitResult("LOST", None, cost, margin, reason, candidates, n_raw)
