@@ -1,0 +1,333 @@
+"""Convergence domain (issue 8, part 2): success rate of the DVS (reduced error (13), `v = λ ε'`) and of the
+decoupled DVS ((16), `c*' = m*'`, `v = Λ ε̄`) over random initial displacements of growing size, on the free-flying
+camera with estimation from rendered images only (no ground truth in the loop).
+
+Set-up (both targets, the paper's synthetic camera): f = 500 px, 550×418, principal point at the centre; the target
+centre 1 m in front of the reference camera, fronto-parallel, textured with `TEXTURE` over 1 m × 0.75 m; the
+paper's 200×150 ROI centred on the control point `m*' = [0, 0, 1]`; λ = 0.4 (1/s) on every axis; the service's
+default twist saturation (`ControlSettings`); stop when the error norm is below 1e-3.
+- "planar": a plane. Geometry: the service's `PlanarEstimator` (planar tracker + direct global initialiser on the
+  first frame and after a lost frame; `e = 0`, `ρ* = 0`).
+- "saddle": the paper's horse saddle `Z = 1 + (X² − Y²)/a`, a = 1 m. Geometry: the service's `GeneralEstimator`
+  (eq. (2): global initialisation and ρ* estimated on the first frame, then `G`, `e` tracked with ρ* fixed).
+
+Displacement of size `s`: the initial camera pose in the reference frame has a translation of `s · UNIT_T_M`
+metres along a uniformly random direction and a rotation of `s · UNIT_R_DEG` degrees about a uniformly random axis
+(size 4 ≈ the paper's synthetic 0.2 m / 62°). Draws whose target centre does not project inside the central
+`VISIBLE_FRACTION` of the initial image (or lies behind the camera) are redrawn: the domain is measured over
+starts that see the target. Trial `k` of size `s` uses the same start for every law (paired comparison), drawn from
+`numpy.random.default_rng([seed, round(1000 · size), k])` (independent of the other sizes swept).
+
+Options: `illumination` varies the lighting over time (global gain 1 ± 0.25, a horizontal gain gradient ± 0.15
+per unit of normalised x, bias ± 15 grey levels, periods 8 s, 5 s and 6 s); `noise` adds Gaussian sensor noise of
+that standard deviation (grey levels, seeded per trial and frame); both quantise the frames to 8 bits.
+
+Outcome of a trial, in this order:
+- "lost": `LOST_AFTER` consecutive frames the estimator could not register (the camera holds still meanwhile);
+- "diverged": the camera left the working volume (distance to the target centre outside [0.2, 3] m) or the
+  commanded twist became non-finite;
+- "budget": no convergence within `max_images` images;
+- "wrong_pose": converged, but the true final pose error exceeds `max_translation_m` or `max_rotation_deg`;
+- "success": converged with a small true pose error (the ground truth is used only for this verdict).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ddvs_service.camera import Intrinsics
+from ddvs_service.control.law import ControlConfig, ControlLaw
+from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
+from ddvs_service.service.config import ControlSettings, RegistrationSettings
+from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
+from sim.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
+from sim.freeflyer import Appearance, FreeFlyer, render_view
+from sim.surfaces import Plane, Surface, paper_saddle
+
+F64 = NDArray[np.float64]
+
+TARGETS = ("planar", "saddle")
+OUTCOMES = ("success", "lost", "diverged", "budget", "wrong_pose")
+UNIT_T_M = 0.05
+UNIT_R_DEG = 15.0
+VISIBLE_FRACTION = 0.8
+LOST_AFTER = 5
+TARGET_DEPTH_M = 1.0
+TARGET_EXTENT_M = (1.0, 0.75)
+WORKING_RANGE_M = (0.2, 3.0)
+CAMERA = Intrinsics.centred(500.0, 550, 418)
+
+
+@dataclass(frozen=True)
+class DomainSettings:
+    """One sweep: targets and laws (keys of `TARGETS`, `LAW_NAMES`), displacement `sizes` (units of `UNIT_T_M` and
+    `UNIT_R_DEG`), `trials` per size, `illumination`, sensor `noise` (grey levels), `seed`, sampling period `dt`
+    (s), gain λ (1/s), stop `threshold` on the error norm, image budget `max_images` per trial, and the success
+    bounds on the true final pose error (`max_translation_m`, `max_rotation_deg`)."""
+
+    targets: tuple[str, ...] = TARGETS
+    laws: tuple[str, ...] = ("dvs", "ddvs")
+    sizes: tuple[float, ...] = (1.0, 2.0, 3.0, 4.0, 5.0)
+    trials: int = 10
+    illumination: bool = False
+    noise: float = 0.0
+    seed: int = 0
+    dt: float = 0.1
+    gain: float = 0.4
+    threshold: float = 1e-3
+    max_images: int = 400
+    max_translation_m: float = 0.01
+    max_rotation_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name, values, known in (("target", self.targets, TARGETS), ("law", self.laws, tuple(LAW_NAMES))):
+            unknown = [v for v in values if v not in known]
+            if unknown or not values:
+                raise ValueError(f"{name}s {list(values)} invalid; expected a non-empty subset of {list(known)}")
+        if not self.sizes or min(self.sizes) <= 0.0:
+            raise ValueError(f"sizes must be positive displacement sizes, got {self.sizes}")
+        if self.trials < 1 or self.max_images < 1:
+            raise ValueError(f"trials ({self.trials}) and max_images ({self.max_images}) must be at least 1")
+        if not (self.noise >= 0.0 and self.dt > 0.0):
+            raise ValueError(f"noise must be >= 0 grey levels and dt > 0 s, got {self.noise}, {self.dt}")
+
+
+@dataclass
+class Trial:
+    """One servo run: which target, law, size index and trial, the initial displacement (m, deg), the outcome
+    (`OUTCOMES`), images processed, last error norm, true final pose error (m, deg) and a note on why it ended."""
+
+    target: str
+    law: str
+    size: float
+    trial: int
+    initial_translation_m: float
+    initial_rotation_deg: float
+    outcome: str
+    images: int
+    final_error_norm: float
+    translation_error_m: float
+    rotation_error_deg: float
+    note: str
+
+
+def make_surface(target: str) -> Surface:
+    """The target surface in the reference camera frame (= world): centre `TARGET_DEPTH_M` ahead, fronto-parallel."""
+    if target == "saddle":
+        return paper_saddle(TARGET_DEPTH_M, 1.0, TARGET_EXTENT_M)
+    if target == "planar":
+        return Plane(pose(np.eye(3), (0.0, 0.0, TARGET_DEPTH_M)), TARGET_EXTENT_M)
+    raise ValueError(f"unknown target {target!r}; expected one of {TARGETS}")
+
+
+def initial_pose(size: float, rng: np.random.Generator) -> F64:
+    """`T_ref_start` (4×4) of a displacement of `size` in random directions whose target centre is in view
+    (module docstring)."""
+    centre = np.array([0.0, 0.0, TARGET_DEPTH_M, 1.0])
+    half = 0.5 * VISIBLE_FRACTION * np.array([CAMERA.width, CAMERA.height])
+    mid = np.array([CAMERA.cx, CAMERA.cy])
+    for _ in range(10_000):
+        t, axis = rng.normal(size=3), rng.normal(size=3)
+        t *= size * UNIT_T_M / np.linalg.norm(t)
+        axis *= np.radians(size * UNIT_R_DEG) / np.linalg.norm(axis)
+        T = pose(so3_exp(axis), t)
+        X = (pose_inv(T) @ centre)[:3]
+        if X[2] > 0.0 and np.all(np.abs(CAMERA.K[:2] @ (X / X[2]) - mid) < half):
+            return T
+    raise RuntimeError(f"no start of size {size} sees the target centre in 10000 draws; use smaller sizes")
+
+
+def appearance(t: float, settings: DomainSettings, seed: int) -> Appearance:
+    """The photometry at time `t` (s): the illumination variation and the sensor noise of the module docstring."""
+    if not settings.illumination:
+        return Appearance(noise=settings.noise, seed=seed, quantize=settings.noise > 0.0)
+    gain = 1.0 + 0.25 * np.sin(2 * np.pi * t / 8.0)
+    gradient = 0.15 * np.sin(2 * np.pi * t / 5.0)
+    bias = 15.0 * np.sin(2 * np.pi * t / 6.0)
+    return Appearance(gain=(gain, gradient, 0.0, 0.0, 0.0, 0.0), bias=bias, noise=settings.noise, seed=seed,
+                      quantize=True)
+
+
+@cache
+def _texture() -> NDArray[np.float32]:
+    import cv2
+
+    image = cv2.imread(TEXTURE, cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise ValueError(f"cannot read the texture image {TEXTURE!r}")
+    return image.astype(np.float32)
+
+
+def run_trial(target: str, law: str, T_ref_start: F64, settings: DomainSettings, seed: int) -> Trial:
+    """Servo from `T_ref_start` to the reference pose with `law` on `target` (module docstring); `seed` keys the
+    sensor noise."""
+    surface = make_surface(target)
+    w, h = PAPER_ROI_SIZE
+    roi = (round(CAMERA.cx - 0.5 * (w - 1)), round(CAMERA.cy - 0.5 * (h - 1)), w, h)
+    control_px = (CAMERA.cx, CAMERA.cy)
+    texture = _texture()
+    reference = render_view(surface, texture, CAMERA, np.eye(4), appearance(0.0, settings, seed + 1))[0]
+    registration = RegistrationSettings()
+    estimator = (GeneralEstimator if target == "saddle" else PlanarEstimator)(reference, roi, registration)
+    limits = ControlSettings()
+    control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=settings.gain, stop_threshold=settings.threshold,
+                                       max_linear=limits.max_linear, max_angular=limits.max_angular), CAMERA)
+    plant = FreeFlyer(surface, CAMERA, np.eye(4), T_ref_start, settings.dt, texture=texture)
+    outcome, note, norm, untracked, images = "budget", f"not converged in {settings.max_images} images", np.nan, 0, 0
+    for _ in range(settings.max_images):
+        images += 1
+        plant.appearance = appearance(plant.index * settings.dt, settings, seed)
+        frame = plant.observe()
+        assert frame.image is not None
+        est = estimator.estimate(frame.image, control_px)
+        if not est.tracked:
+            untracked += 1
+            if untracked >= LOST_AFTER:
+                outcome, note = "lost", f"{untracked} frames not registered: {est.message}"
+                break
+            plant.move(np.zeros(6))
+            continue
+        untracked = 0
+        out = control.compute(est.G, est.e, est.rho)
+        norm = out.error_norm
+        if out.converged:
+            outcome, note = "converged", f"error norm {norm:.2e} below {settings.threshold:g}"
+            break
+        distance = float(np.linalg.norm(frame.T_world_cam[:3, 3] - surface.T_world_surface[:3, 3]))
+        if not (WORKING_RANGE_M[0] <= distance <= WORKING_RANGE_M[1]):
+            outcome, note = "diverged", f"camera {distance:.2f} m from the target centre"
+            break
+        plant.move(out.twist)
+    T_cur_ref = pose_inv(plant.T_world_cam)
+    t_err = float(np.linalg.norm(T_cur_ref[:3, 3]))
+    r_err = float(np.degrees(np.linalg.norm(so3_log(T_cur_ref[:3, :3]))))
+    if outcome == "converged":
+        small = t_err <= settings.max_translation_m and r_err <= settings.max_rotation_deg
+        outcome = "success" if small else "wrong_pose"
+    return Trial(target, law, 0.0, 0, float(np.linalg.norm(T_ref_start[:3, 3])),
+                 float(np.degrees(np.linalg.norm(so3_log(T_ref_start[:3, :3])))), outcome, images, float(norm),
+                 t_err, r_err, note)
+
+
+def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool = False) -> list[Trial]:
+    """Every trial of the sweep, in the order size → trial → target → law. With `out_dir`, each trial is appended
+    to `trials.jsonl` there as it ends, and trials already in that file are not run again (resume; the sizes,
+    trials, targets and laws may change, every other setting must be the same)."""
+    done: dict[tuple[str, str, float, int], Trial] = {}
+    journal = None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        journal = out_dir / "trials.jsonl"
+        _check_resumable(settings, out_dir / "settings.json")
+        (out_dir / "settings.json").write_text(json.dumps(asdict(settings), indent=2))
+        if journal.exists():
+            for line in journal.read_text().splitlines():
+                trial = Trial(**json.loads(line))
+                done[(trial.target, trial.law, trial.size, trial.trial)] = trial
+    trials: list[Trial] = []
+    for size in settings.sizes:
+        for k in range(settings.trials):
+            T_start = initial_pose(size, np.random.default_rng([settings.seed, round(1000 * size), k]))
+            for target in settings.targets:
+                for law in settings.laws:
+                    key = (target, law, float(size), k)
+                    if key in done:
+                        trials.append(done[key])
+                        continue
+                    noise_seed = settings.seed * 100_003 + round(1000 * size) * 1009 + k
+                    trial = run_trial(target, law, T_start, settings, noise_seed)
+                    trial.size, trial.trial = float(size), k
+                    trials.append(trial)
+                    if journal is not None:
+                        with open(journal, "a", encoding="utf-8") as f:
+                            f.write(json.dumps(asdict(trial)) + "\n")
+                    if log:
+                        print(json.dumps(asdict(trial)), flush=True)
+    return trials
+
+
+def _check_resumable(settings: DomainSettings, path: Path) -> None:
+    """Raise `ValueError` when the sweep journalled beside `path` ran with other physics or success bounds."""
+    if not path.exists():
+        return
+    free = ("sizes", "trials", "targets", "laws")
+    old = {k: v for k, v in json.loads(path.read_text()).items() if k not in free}
+    new = {k: v for k, v in json.loads(json.dumps(asdict(settings))).items() if k not in free}
+    if old != new:
+        changed = sorted(k for k in new if old.get(k) != new[k])
+        raise ValueError(f"{path.parent} holds trials run with other settings ({', '.join(changed)}): choose another "
+                         "--out directory or delete it")
+
+
+def success_table(trials: list[Trial]) -> list[dict[str, object]]:
+    """Per (target, law, size): trials, successes, rate and the count of each failure cause; mean images of the
+    successes."""
+    rows = []
+    keys = sorted({(t.target, t.law, t.size) for t in trials})
+    for target, law, size in keys:
+        group = [t for t in trials if (t.target, t.law, t.size) == (target, law, size)]
+        counts = {o: sum(t.outcome == o for t in group) for o in OUTCOMES}
+        wins = [t.images for t in group if t.outcome == "success"]
+        rows.append({"target": target, "law": law, "size": size, "translation_m": size * UNIT_T_M,
+                     "rotation_deg": size * UNIT_R_DEG, "trials": len(group), **counts,
+                     "rate": counts["success"] / len(group),
+                     "mean_images": float(np.mean(wins)) if wins else float("nan")})
+    return rows
+
+
+def markdown_table(rows: list[dict[str, object]]) -> str:
+    """The success table as markdown."""
+    head = ("| target | law | size | ‖t‖ (m) | angle (°) | trials | success | rate | lost | diverged | budget "
+            "| wrong pose | mean images (successes) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    body = "".join(
+        f"| {r['target']} | {r['law']} | {r['size']:g} | {r['translation_m']:.3f} | {r['rotation_deg']:.0f} "
+        f"| {r['trials']} | {r['success']} | {r['rate']:.0%} | {r['lost']} | {r['diverged']} | {r['budget']} "
+        f"| {r['wrong_pose']} | {r['mean_images']:.0f} |\n"
+        for r in rows
+    )
+    return head + body
+
+
+def save_plot(rows: list[dict[str, object]], path: Path) -> Path:
+    """Success rate against displacement size, one line per (target, law)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for target, law in sorted({(r["target"], r["law"]) for r in rows}):
+        mine = [r for r in rows if (r["target"], r["law"]) == (target, law)]
+        ax.plot([r["size"] for r in mine], [100.0 * float(r["rate"]) for r in mine], marker="o",
+                ls="-" if law == "ddvs" else "--", label=f"{target}, {'decoupled DVS' if law == 'ddvs' else 'DVS'}")
+    ax.set_xlabel(f"displacement size (× {UNIT_T_M} m and × {UNIT_R_DEG:g}°)")
+    ax.set_ylabel("success rate (%)")
+    ax.set_ylim(-5, 105)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_report(trials: list[Trial], settings: DomainSettings, out_dir: Path) -> dict[str, Path]:
+    """`domain.md` (settings and table), `domain.json` (the table rows) and `domain.png` (the plot) in `out_dir`."""
+    rows = success_table(trials)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    plot = save_plot(rows, out_dir / "domain.png")
+    (out_dir / "domain.json").write_text(json.dumps({"settings": asdict(settings), "rows": rows}, indent=2))
+    text = (f"# Convergence domain\n\nSettings: {json.dumps(asdict(settings))}\n\n"
+            f"Size s: ‖t‖ = s × {UNIT_T_M} m, rotation = s × {UNIT_R_DEG:g}° (random directions, target centre in "
+            f"view). Success: error norm < {settings.threshold:g} within {settings.max_images} images and true final "
+            f"error ≤ {settings.max_translation_m * 1e3:g} mm, ≤ {settings.max_rotation_deg:g}°.\n\n"
+            f"{markdown_table(rows)}\n![success rate]({plot.name})\n")
+    (out_dir / "domain.md").write_text(text)
+    return {"markdown": out_dir / "domain.md", "json": out_dir / "domain.json", "plot": plot}
