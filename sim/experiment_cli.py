@@ -1,4 +1,6 @@
-"""`ddvs experiment synthetic`: the paper's synthetic experiment (see `sim.experiment_synthetic`).
+"""`ddvs experiment synthetic`: the paper's synthetic experiment (see `sim.experiment_synthetic`); `ddvs experiment
+paper` (both experiments and the report, `sim.experiment_paper`) and `ddvs experiment domain` (convergence domain,
+`sim.experiment_domain`).
 
 Prints a human-readable summary, or one JSON line with `--json` (law, geometry source, converged, why it stopped,
 images to convergence, the paper's count, final translation (m) and rotation (deg) errors, retreat (m), coupling
@@ -34,8 +36,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--out", type=Path, default=Path("reports/synthetic"), help="directory for the plots")
     sp.add_argument("--no-plots", action="store_true", help="do not save plots")
 
+    pp = sub.add_parser("paper", help="both paper experiments (synthetic saddle, arm) with both laws, and the report")
+    pp.add_argument("--out", type=Path, default=Path("reports/paper"), help="report directory (default reports/paper)")
+    pp.add_argument("--only", nargs="+", choices=("synthetic_dvs", "synthetic_ddvs", "arm_dvs", "arm_ddvs"),
+                    help="run only these experiments (default: all four)")
+    pp.add_argument("--max-images", type=int, help="image budget of every run (default 3000 synthetic, 2000 arm)")
+    pp.add_argument("--force", action="store_true", help="re-run experiments whose summary exists")
+
+    dp = sub.add_parser("domain", help="success rate over random initial displacements of growing size")
+    dp.add_argument("--target", choices=("planar", "saddle"), help="one target (default both)")
+    dp.add_argument("--law", choices=("dvs", "ddvs"), help="one law (default both)")
+    dp.add_argument("--trials", type=int, default=10, help="trials per size (default 10)")
+    dp.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0, 3.0, 4.0, 5.0],
+                    help="displacement sizes, units of 0.05 m and 15 degrees (default 1 2 3 4 5)")
+    dp.add_argument("--illumination", action="store_true", help="vary the lighting over time")
+    dp.add_argument("--noise", type=float, default=0.0, help="sensor noise standard deviation (grey levels)")
+    dp.add_argument("--seed", type=int, default=0, help="seed of the random starts and the noise (default 0)")
+    dp.add_argument("--max-images", type=int, default=400, help="image budget per trial (default 400)")
+    dp.add_argument("--dt", type=float, default=0.1, help="sampling period (s, default 0.1)")
+    dp.add_argument("--out", type=Path, default=Path("reports/domain"), help="output directory (resumable)")
+
 
 def run(args: argparse.Namespace) -> int:
+    if args.experiment == "paper":
+        from sim.experiment_paper import run_paper_command
+
+        return run_paper_command(args)
+    if args.experiment == "domain":
+        from sim.experiment_domain import run_domain_command
+
+        return run_domain_command(args)
     from sim.experiment_synthetic import PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
 
     setup = SyntheticSetup(

@@ -33,6 +33,7 @@ Outcome of a trial, in this order:
 
 from __future__ import annotations
 
+import argparse
 import json
 from dataclasses import asdict, dataclass
 from functools import cache
@@ -331,3 +332,17 @@ def write_report(trials: list[Trial], settings: DomainSettings, out_dir: Path) -
             f"{markdown_table(rows)}\n![success rate]({plot.name})\n")
     (out_dir / "domain.md").write_text(text)
     return {"markdown": out_dir / "domain.md", "json": out_dir / "domain.json", "plot": plot}
+
+
+def run_domain_command(args: argparse.Namespace) -> int:
+    """`ddvs experiment domain`: run or resume the sweep, one JSON line per trial, then the report's paths."""
+    settings = DomainSettings(
+        targets=(args.target,) if args.target else TARGETS,
+        laws=(args.law,) if args.law else ("dvs", "ddvs"),
+        sizes=tuple(args.sizes), trials=args.trials, illumination=args.illumination, noise=args.noise,
+        seed=args.seed, dt=args.dt, max_images=args.max_images,
+    )
+    trials = run_domain(settings, args.out, log=True)
+    for path in write_report(trials, settings, args.out).values():
+        print(path)
+    return 0

@@ -25,6 +25,7 @@ Figs. 3, 4, 6, 7, error norm, pose error); an experiment whose summary exists is
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 from dataclasses import dataclass
@@ -251,3 +252,15 @@ def write_report(rows: dict[str, dict[str, Any]], out_dir: Path) -> Path:
     path = out_dir / "report.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def run_paper_command(args: argparse.Namespace) -> int:
+    """`ddvs experiment paper`: run or resume, print one JSON line per experiment and the report's path; exit 0
+    only when every selected run converged."""
+    budgets = {} if args.max_images is None else {"synthetic_max_images": args.max_images,
+                                                   "arm_max_images": args.max_images}
+    settings = PaperSettings(out_dir=args.out, experiments=tuple(args.only or EXPERIMENTS), force=args.force,
+                             **budgets)
+    rows = run_paper(settings, log=True)
+    print(settings.out_dir / "report.md")
+    return 0 if all(row["converged"] for row in rows.values()) else 1
