@@ -63,7 +63,7 @@ class ArmRunSettings:
     images required before finishing; `robot`/`prefix` of the keys; `launch` per child name how it starts
     (default: loopback mesh, this interpreter); `driver_session` the `SessionConfig` fields of this process's session
     (default: a peer connecting to the sim's and the service's loopback ports); `start_servo` False: `open_arm_run`
-    uploads the reference but leaves the `start` to the caller (`ArmRun.command("start")`)."""
+    uploads the reference but leaves the `start` to the caller (`ArmRun.command(Command(op="start"))`)."""
 
     out_dir: Path
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
