@@ -217,7 +217,8 @@ def run_trial(target: str, law: str, T_ref_start: F64, settings: DomainSettings,
 
 
 def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool = False) -> list[Trial]:
-    """Every trial of the sweep, in the order size → trial → target → law. With `out_dir`, each trial is appended
+    """Every trial of the sweep, in the order trial → size → target → law (an interrupted sweep has covered every
+    size about equally). With `out_dir`, each trial is appended
     to `trials.jsonl` there as it ends, and trials already in that file are not run again (resume; the sizes,
     trials, targets and laws may change, every other setting must be the same)."""
     done: dict[tuple[str, str, float, int], Trial] = {}
@@ -232,8 +233,8 @@ def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool 
                 trial = Trial(**json.loads(line))
                 done[(trial.target, trial.law, trial.size, trial.trial)] = trial
     trials: list[Trial] = []
-    for size in settings.sizes:
-        for k in range(settings.trials):
+    for k in range(settings.trials):
+        for size in settings.sizes:
             T_start = initial_pose(size, np.random.default_rng([settings.seed, round(1000 * size), k]))
             for target in settings.targets:
                 for law in settings.laws:

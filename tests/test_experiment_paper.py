@@ -14,7 +14,7 @@ from sim.experiment_paper import PaperSettings, markdown_table, write_report
 
 ROW = {
     "experiment": "arm_ddvs", "plant": "SAPIEN UR5, planar poster", "law": "ddvs", "geometry": "estimated",
-    "converged": True, "images": 535, "paper_images": 309, "translation_error_mm": 1.9786,
+    "converged": True, "images": 535, "first_below_threshold": 412, "paper_images": 309, "translation_error_mm": 1.9786,
     "rotation_error_deg": 0.16417, "retreat_mm": 0.0, "coupling": 0.1234, "coupling_near_equilibrium": math.nan,
     "stopped": "converged", "figures": ["plots/velocities.png"],
 }
@@ -27,7 +27,7 @@ def test_settings_reject_unknown_experiments():
 
 def test_table_and_report_carry_the_numbers(tmp_path):
     table = markdown_table({"arm_ddvs": ROW})
-    assert "| arm_ddvs | ddvs | estimated | yes | 535 | 309 | 1.98 | 0.164 | 0.0 | 0.123 | — |" in table
+    assert "| arm_ddvs | ddvs | estimated | yes | 535 | 412 | 309 | 1.98 | 0.164 | 0.0 | 0.123 | — |" in table
     report = write_report({"arm_ddvs": ROW}, tmp_path).read_text()
     assert table in report
     assert "![arm_ddvs velocities](arm_ddvs/plots/velocities.png)" in report
@@ -53,7 +53,8 @@ def test_shortened_paper_run_writes_the_report_and_resumes(tmp_path: Path):
         assert row["translation_error_mm"] > 150.0  # still near the paper's start (0.2 m / 0.27 m away)
         assert 0.0 <= row["coupling"] <= 1.0 and row["retreat_mm"] >= 0.0
         line = next(x for x in report.splitlines() if x.startswith(f"| {name} |"))
-        assert f"| {row['images']} | {row['paper_images']} | {row['translation_error_mm']:.2f} |" in line
+        assert row["first_below_threshold"] is None
+        assert f"| {row['images']} | — | {row['paper_images']} | {row['translation_error_mm']:.2f} |" in line
         for figure in row["figures"]:
             assert (tmp_path / name / figure).stat().st_size > 5_000, figure
     assert rows["synthetic_ddvs"]["paper_images"] == 762 and rows["arm_dvs"]["paper_images"] == 417
