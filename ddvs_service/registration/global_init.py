@@ -114,7 +114,7 @@ class GlobalInitConfig:
     screen_iterations: int = 8  # Gauss-Newton iterations per level of a screening
     final_refined: int = 2  # distinct screened candidates refined fully (winner and runner-up)
     distinct_px: float = 3.0  # two warps closer than this (RMS over the ROI) are the same solution
-    max_cost: float = 0.3  # winner's robust cost over its visible pixels above this → LOST
+    max_cost: float = 0.4  # winner's robust cost over its visible pixels at the search level above this → LOST
     min_margin: float = 0.1  # a good different solution's cost minus the winner's below this → LOST
     min_visible: float = 0.5  # winner's visible ROI fraction below this → LOST
     early_accept_cost: float = 0.1  # an OK winner of the first stage with a visible cost below this ends the search
@@ -234,7 +234,8 @@ class GlobalInitializer:
                                                                                              r.valid))
                                   for r in refine(cur, G, first_level)]
             candidates = sorted((c for cs in refined.values() for c in cs), key=lambda c: c.score.cost)
-            result = _decide(candidates, n_raw, roi, cfg)
+            quality = search.scores([candidates[0].refinement.G])[0].cost_visible if candidates else 1.0
+            result = _decide(candidates, quality, n_raw, roi, cfg)
             if result.status == "OK" and result.cost <= cfg.early_accept_cost:
                 break
         return result
@@ -251,17 +252,19 @@ def _distinct(items: list[tuple[F64, T]], limit: int, roi: Roi, distinct_px: flo
     return [item for _, item in kept]
 
 
-def _decide(candidates: list[Candidate], n_raw: int, roi: Roi, cfg: GlobalInitConfig) -> InitResult:
-    """Winner, margin to the best *good* different solution, and the LOST criteria of the module docstring."""
+def _decide(candidates: list[Candidate], quality: float, n_raw: int, roi: Roi, cfg: GlobalInitConfig) -> InitResult:
+    """Winner, margin to the best *good* different solution, and the LOST criteria of the module docstring.
+    `quality`: the winner's visible cost at the search level (coarse: sub-pixel model errors, e.g. the parallax a
+    planar warp leaves on a curved target, and aliasing weigh less there than a wrong match)."""
     if not candidates:
         return InitResult("LOST", None, 1.0, 0.0, "no hypothesis could be refined", candidates, n_raw)
     best = candidates[0]
     rival = next((c for c in candidates[1:] if c.score.cost_visible <= cfg.max_cost
                   and warp_rms(c.refinement.G, best.refinement.G, roi) > cfg.distinct_px), None)
     margin = (rival.score.cost if rival else 1.0) - best.score.cost
-    cost = best.score.cost_visible
+    cost = quality
     if cost > cfg.max_cost:
-        reason = f"best robust cost {cost:.3f} (visible pixels) above the quality threshold {cfg.max_cost}"
+        reason = f"best robust cost {cost:.3f} (visible pixels, search level) above the threshold {cfg.max_cost}"
     elif best.score.visible < cfg.min_visible:
         reason = f"only {best.score.visible:.0%} of the ROI visible (need {cfg.min_visible:.0%})"
     elif margin < cfg.min_margin:
