@@ -3,6 +3,10 @@
 Output keys: `H` (3×3, reference → current pixels, 0-based pixel centres, H[2,2] = 1), `G`, `S`, `beta`,
 `iterations` (per level, coarse → fine), `residual_rms`, `inlier_ratio`, `scale`, `converged`, `reason`, `wall_ms`
 (the registration itself, excluding image loading). Exit status 0 when converged, 1 when not, 2 on bad input.
+
+`--model general` registers the non-planar model (2) `p ∝ G p* + ρ*(p*) e` instead
+(`ddvs_service.registration.general.register_general`: ρ* estimated with several epipole starts); its extra keys:
+`e` (epipole, pixels, same scale as `G`), `rho_coeffs`, `rho_degree`, `rho_std`, `parallax_px`, `margin`, `flags`.
 """
 
 from __future__ import annotations
@@ -20,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--levels", type=int, help="pyramid levels at most (default: as many as the ROI size allows)")
     parser.add_argument("--gain-grid", default="1x1", metavar="RxC", help="gain grid rows x cols (default 1x1)")
     parser.add_argument("--robust", choices=("huber", "tukey", "none"), default="huber", help="M-estimator")
+    parser.add_argument("--model", choices=("planar", "general"), default="planar",
+                        help="planar homography (default) or the general model with epipole and parallax field")
+    parser.add_argument("--rho-degree", type=int, choices=(2, 3), default=2,
+                        help="general model: degree of the parallax basis (2 biquadratic, 3 bicubic; default 2)")
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -49,9 +57,15 @@ def run(args: argparse.Namespace) -> int:
         G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
         levels = {} if args.levels is None else {"levels": args.levels}
         config = RegistrationConfig(**levels, gain_grid=_grid(args.gain_grid), robust=args.robust)
+        roi = None if args.roi is None else tuple(args.roi)
         start = time.perf_counter()
-        result = register(images[0], images[1], roi=None if args.roi is None else tuple(args.roi), G0=G0,
-                          config=config)
+        if args.model == "general":
+            from ddvs_service.registration.general import GeneralConfig, register_general
+
+            result = register_general(images[0], images[1], roi=roi, G0=G0,
+                                      config=GeneralConfig(base=config, rho_degree=args.rho_degree))
+        else:
+            result = register(images[0], images[1], roi=roi, G0=G0, config=config)
         wall_ms = (time.perf_counter() - start) * 1e3
     except (ValueError, OSError) as exc:
         print(json.dumps({"error": str(exc)}))

@@ -4,6 +4,8 @@ and the gauge of the parallax basis."""
 
 from __future__ import annotations
 
+import json
+from dataclasses import replace
 from functools import cache
 
 import cv2
@@ -11,6 +13,7 @@ import numpy as np
 import pytest
 
 from ddvs_service.camera import Intrinsics
+from ddvs_service.cli import main
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general import (
@@ -20,10 +23,11 @@ from ddvs_service.registration.general import (
     GeneralConfig,
     GeneralRegistration,
     register_general,
+    warp_points,
 )
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.general_tracker import GeneralTracker
-from sim.experiment_synthetic import run_synthetic
+from sim.experiment_synthetic import SyntheticSetup, run_synthetic
 from sim.freeflyer import render_view
 from sim.ground_truth import ground_truth, parallax_map
 from sim.surfaces import Plane, paper_saddle
@@ -100,6 +104,10 @@ def test_paper_trajectory_from_a_cold_start() -> None:
     assert FLAG_NO_PARALLAX not in result.flags
     # Met (≤ 1) over images 0–165 (|ε̄| from 1.7 down to ~0.1). NOT met yet nearer the equilibrium: measured up to
     # 14× the tolerance (e.g. 1.4e-3 absolute); the bound below only guards against regressions of that gap.
+    # Diagnosis (see the report): the gap is the image registration's error on the perspective terms h31, h32 of H
+    # (both ε̄_v and ε̄_ω contain them), not ρ*: tracking with the exact ρ* coefficients, or planar registration on the
+    # same frames, gives the same error; supersampled rendering does not change it; it is the bias of the bilinear
+    # interpolation (the least-squares minimum itself sits 0.02–0.04 px off the true warp).
     early = frames.index(165) + 1
     assert max(worst_err[:early]) <= 1.0, worst_err
     assert max(worst_err) <= 20.0, worst_err
@@ -169,6 +177,42 @@ def test_rho_survives_standstill_and_lost_target() -> None:
     assert back.converged, back.reason
     np.testing.assert_array_equal(tracker.rho_coeffs, rho)
     assert warp_rms(back, saddle, T) < 0.1
+
+
+@pytest.mark.slow
+def test_closed_loop_on_rendered_images_follows_the_exact_loop() -> None:
+    """The first 30 images of the paper's decoupled loop closed on rendered frames by the general tracker (global
+    initialisation and ρ* estimated on the first frame, no ground truth in the loop): never lost, and the camera
+    follows the exact-geometry loop's path to within 2 mm and 0.2°. The full runs (both laws to convergence) are
+    too long for CI: `ddvs experiment synthetic --law {dvs,ddvs} --geometry estimated` (figures in the report)."""
+    setup = replace(SyntheticSetup(), max_images=30)
+    estimated = run_synthetic("ddvs", setup, "estimated")
+    exact = run_synthetic("ddvs", setup)
+    assert estimated.images == exact.images == 30, estimated.stopped
+    assert np.max(np.linalg.norm(estimated.positions - exact.positions, axis=1)) < 2e-3
+    dR = np.einsum("kji,kjl->kil", estimated.rotations, exact.rotations)
+    angles = np.degrees(np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert np.max(angles) < 0.2
+    np.testing.assert_allclose(estimated.error_norms, exact.error_norms, rtol=0.01)
+
+
+@pytest.mark.slow
+def test_register_cli_general_model(tmp_path, capsys) -> None:
+    """`ddvs register --model general` on two PNG files of the saddle: one JSON line with the epipole and the parallax
+    field, converged, warp within 0.1 px of the truth over the ROI."""
+    saddle = paper_saddle()
+    T = pose(so3_exp([-0.03, -0.1, 0.35]), [0.06, -0.04, 0.02])
+    paths = [str(tmp_path / name) for name in ("ref.png", "cur.png", "G0.txt")]
+    for path, image in zip(paths, (render(saddle, np.eye(4)), render(saddle, T))):
+        cv2.imwrite(path, np.clip(np.rint(image), 0, 255).astype(np.uint8))
+    np.savetxt(paths[2], ground_truth(saddle, INTR, np.eye(4), T).G)
+    rc = main(["register", paths[0], paths[1], "--roi", *map(str, ROI), "--init", paths[2], "--model", "general"])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])  # after Taichi's banner
+    assert rc == 0 and out["converged"], out["reason"]
+    assert FLAG_NO_PARALLAX not in out["flags"] and out["parallax_px"] > 0.1 and out["rho_degree"] == 2
+    basis = ParallaxBasis.over(ROI, 2)
+    estimated = warp_points(np.array(out["G"]), np.array(out["e"]), basis, np.array(out["rho_coeffs"]), roi_pixels())
+    assert np.sqrt(np.mean(np.sum((estimated - true_warp(saddle, T)) ** 2, axis=1))) < 0.1
 
 
 def test_register_general_refuses_bad_input() -> None:
