@@ -1,18 +1,21 @@
 """Global initialisation and re-acquisition from large displacements (issue 9).
 
-`GlobalInitializer.initialize(reference, roi, current)`:
-1. hypotheses: direct Fourier–Mellin search (`global_fourier_mellin.py`: any in-plane rotation, scale 0.6–1.6, ROI
-   anywhere with part of it outside the image), plus, when `config.feature_source` is 'orb' or 'akaze', one RANSAC
-   homography from features (`global_features.py`);
-2. the `max_refined` best distinct hypotheses (by robust photometric cost, `global_cost.py`) are screened by a short
-   refinement, and the `final_refined` best distinct screened ones are refined fully, by a `Refiner` – the planar
-   direct engine (coarse to fine, eqs. (4)–(5) with ρ* ≡ 0) by default. A refiner returns one
-   or several refinements per start (hook for the general model of eq. (2) started from several epipole
-   directions) and the current image sampled at its own warp, so any model is scored the same way;
-3. the refinements are ranked by the robust photometric cost; `margin` = cost of the best *different* solution (warp
-   farther than `distinct_px` RMS over the ROI) minus the winner's (1 − winner's cost when there is none);
-4. status "LOST" when the winner's cost exceeds `max_cost`, its visible ROI fraction is below `min_visible`, or the
-   margin is below `min_margin` — never a confident wrong estimate.
+`GlobalInitializer.initialize(reference, roi, current)`, stage by stage (1. log-polar peaks and the feature
+hypothesis; 2. the uniform rotation/scale grid, searched only when stage 1 gave no clear winner):
+1. hypotheses: direct Fourier–Mellin search on a coarse pyramid level (`global_fourier_mellin.py`: any in-plane
+   rotation, scale 0.6–1.6, ROI anywhere with part of it outside the image), plus, when `config.feature_source` is
+   'orb' or 'akaze', one RANSAC homography from features (`global_features.py`); ranked by the robust photometric
+   cost (`global_cost.py`) at that level;
+2. the `max_screened` best distinct new hypotheses are screened by a planar refinement at the search level only,
+   and the `final_refined` best distinct screened ones (winner and runner-up) are refined at full resolution by a
+   `Refiner` – the planar direct engine (eqs. (4)–(5) with ρ* ≡ 0) by default, started one level above the search
+   level. A refiner returns one or several refinements per start (hook for the general model of eq. (2) started
+   from several epipole directions) and the current image sampled at its own warp, so any model is scored the same;
+3. the refinements are ranked by their robust cost over the visible pixels (those keeping `min_visible` of the ROI
+   in view first); `margin` = visible cost of the best *good* different solution (warp farther than `distinct_px`
+   RMS over the ROI, visible cost ≤ `max_cost`) minus the winner's (1 − the winner's when there is none);
+4. status "LOST" when the winner's visible cost at the search level exceeds `max_cost`, its visible ROI fraction is
+   below `min_visible`, or the margin is below `min_margin` — never a confident wrong estimate.
 
 `G` maps reference pixels to current pixels (full-image 0-based pixel centres), det 1.
 """
@@ -114,7 +117,7 @@ class GlobalInitConfig:
     screen_iterations: int = 8  # Gauss-Newton iterations per level of a screening
     final_refined: int = 2  # distinct screened candidates refined fully (winner and runner-up)
     distinct_px: float = 3.0  # two warps closer than this (RMS over the ROI) are the same solution
-    max_cost: float = 0.4  # winner's robust cost over its visible pixels at the search level above this → LOST
+    max_cost: float = 0.25  # winner's robust cost over its visible pixels at the search level above this → LOST
     min_margin: float = 0.1  # a good different solution's cost minus the winner's below this → LOST
     min_visible: float = 0.5  # winner's visible ROI fraction below this → LOST
     early_accept_cost: float = 0.1  # an OK winner of the first stage with a visible cost below this ends the search
@@ -225,7 +228,8 @@ class GlobalInitializer:
             fresh = [hyp for hyp in raw if all(warp_rms(hyp.G, G, roi) > cfg.distinct_px for G in seen)]
             starts = _distinct([(hyp.G, hyp) for hyp in fresh], cfg.max_screened, roi, cfg.distinct_px)
             Gs = screen(search, [hyp.G for hyp in starts], cfg.screen_iterations)
-            screened += [(score.cost, G, hyp) for score, G, hyp in zip(search.scores(Gs), Gs, starts, strict=True)]
+            screened += [(_rank(score, cfg), G, hyp) for score, G, hyp in zip(search.scores(Gs), Gs, starts,
+                                                                              strict=True)]
             order = sorted(range(len(screened)), key=lambda i: screened[i][0])
             for i in _distinct([(screened[i][1], i) for i in order], cfg.final_refined, roi, cfg.distinct_px):
                 if i not in refined:
@@ -233,12 +237,19 @@ class GlobalInitializer:
                     refined[i] = [Candidate(hyp.source, hyp.score.cost, r, photometric_score(template, r.sampled,
                                                                                              r.valid))
                                   for r in refine(cur, G, first_level)]
-            candidates = sorted((c for cs in refined.values() for c in cs), key=lambda c: c.score.cost)
+            candidates = sorted((c for cs in refined.values() for c in cs), key=lambda c: _rank(c.score, cfg))
             quality = search.scores([candidates[0].refinement.G])[0].cost_visible if candidates else 1.0
             result = _decide(candidates, quality, n_raw, roi, cfg)
             if result.status == "OK" and result.cost <= cfg.early_accept_cost:
                 break
         return result
+
+
+def _rank(score: PhotometricScore, cfg: GlobalInitConfig) -> float:
+    """Ranking key of a refined solution: its visible cost, after every solution that keeps `min_visible` of the ROI
+    in view (the total cost, which charges 1 per pixel out of view, would prefer a wrong match inside the image to
+    the right one partly outside)."""
+    return score.cost_visible + (1.0 if score.visible < cfg.min_visible else 0.0)
 
 
 def _distinct(items: list[tuple[F64, T]], limit: int, roi: Roi, distinct_px: float) -> list[T]:
@@ -261,7 +272,7 @@ def _decide(candidates: list[Candidate], quality: float, n_raw: int, roi: Roi, c
     best = candidates[0]
     rival = next((c for c in candidates[1:] if c.score.cost_visible <= cfg.max_cost
                   and warp_rms(c.refinement.G, best.refinement.G, roi) > cfg.distinct_px), None)
-    margin = (rival.score.cost if rival else 1.0) - best.score.cost
+    margin = (rival.score.cost_visible if rival else 1.0) - best.score.cost_visible
     cost = quality
     if cost > cfg.max_cost:
         reason = f"best robust cost {cost:.3f} (visible pixels, search level) above the threshold {cfg.max_cost}"
