@@ -268,7 +268,8 @@ class GeneralRegistration:
         scale0: float | None = None, information: bool = True, first_level: int | None = None,
     ) -> GeneralResult:
         """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
-        when ρ* is 0 (planar). `information`: also evaluate the information on ρ* at the solution (one more pass).
+        when ρ* is 0 (planar). `information`: also evaluate the information on ρ* at the solution (one more pass,
+        skipped when the parallax is below `min_parallax_px`).
         `first_level`: the coarsest pyramid level solved (0 = full resolution only; default the coarsest), as
         `PlanarRegistration.run`: a warm start with small predicted motion skips the coarse levels."""
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
@@ -285,7 +286,9 @@ class GeneralRegistration:
             iterations.append(n)
             if failed:
                 return self._failed(state, reason, _flags_for(reason), iterations)
-        info = self._information(pyramid, state) if information and free_e else np.zeros((self.basis.size,) * 2)
+        # A frame whose parallax is below detection carries no usable information on ρ*: skip that pass.
+        observed = free_e and _rms(self._parallax_px(state.G, state.e, state.c)) >= self.config.min_parallax_px
+        info = self._information(pyramid, state) if information and observed else np.zeros((self.basis.size,) * 2)
         return self._result(state, iterations, converged, reason, info)
 
     # --------------------------------------------------------------------------------------------- internals
@@ -467,7 +470,7 @@ class GeneralRegistration:
         parallax = self._parallax_px(state.G, state.e, state.c)
         return GeneralResult(
             G=state.G, e=state.e, rho_coeffs=state.c.copy(), basis=self.basis, S=state.gains.copy(), beta=state.beta,
-            rho_information=info, parallax_px=float(np.sqrt(np.mean(parallax**2))), iterations=iterations,
+            rho_information=info, parallax_px=_rms(parallax), iterations=iterations,
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio,
             scale=float("nan") if state.scale is None else state.scale, converged=converged, reason=reason, flags=flags,
         )
@@ -480,6 +483,10 @@ class GeneralRegistration:
             beta=float(state.beta), rho_information=np.zeros((self.basis.size,) * 2), iterations=iterations or [],
             converged=False, reason=reason, flags=flags,
         )
+
+
+def _rms(x: F64) -> float:
+    return float(np.sqrt(np.mean(x**2)))
 
 
 def _flags_for(reason: str) -> list[str]:
