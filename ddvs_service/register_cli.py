@@ -7,6 +7,11 @@ Output keys: `H` (3×3, reference → current pixels, 0-based pixel centres, H[2
 `--model general` registers the non-planar model (2) `p ∝ G p* + ρ*(p*) e` instead
 (`ddvs_service.registration.general.register_general`: ρ* estimated with several epipole starts); its extra keys:
 `e` (epipole, pixels, same scale as `G`), `rho_coeffs`, `rho_degree`, `rho_std`, `parallax_px`, `margin`, `flags`.
+
+`--init global` starts from the global initialiser (`registration.global_init`: any in-plane rotation, scale
+0.6–1.6, the ROI anywhere in the image) instead of a homography file; its summary is added under `global_init`.
+When it reports LOST nothing is refined: the output is `{"global_init": ..., "converged": false, "reason": ...}`
+and the exit status 1.
 """
 
 from __future__ import annotations
@@ -20,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("reference", help="reference image file (colour is converted to grey)")
     parser.add_argument("current", help="current image file, same size as the reference")
     parser.add_argument("--roi", nargs=4, type=int, metavar=("X", "Y", "W", "H"), help="ROI in reference pixels")
-    parser.add_argument("--init", metavar="H_FILE", help="initial homography: 3×3 text file (numpy.loadtxt)")
+    parser.add_argument("--init", metavar="H_FILE", help="initial homography: 3×3 text file (numpy.loadtxt), "
+                        "or 'global' for the global initialiser")
     parser.add_argument("--levels", type=int, help="pyramid levels at most (default: as many as the ROI size allows)")
     parser.add_argument("--gain-grid", default="1x1", metavar="RxC", help="gain grid rows x cols (default 1x1)")
     parser.add_argument("--robust", choices=("huber", "tukey", "none"), default="huber", help="M-estimator")
@@ -54,7 +60,19 @@ def run(args: argparse.Namespace) -> int:
             if img is None:
                 raise ValueError(f"cannot read image {path!r}")
             images.append(to_grey(img))
-        G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
+        init_summary = None
+        if args.init == "global":
+            from ddvs_service.registration.global_init import register_global
+
+            h, w = images[0].shape
+            found = register_global(images[0], images[1], (0, 0, w, h) if args.roi is None else tuple(args.roi))
+            init_summary = found.to_json_dict()
+            if found.G is None:
+                print(json.dumps({"global_init": init_summary, "converged": False, "reason": found.reason}))
+                return 1
+            G0 = found.G
+        else:
+            G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
         levels = {} if args.levels is None else {"levels": args.levels}
         config = RegistrationConfig(**levels, gain_grid=_grid(args.gain_grid), robust=args.robust)
         roi = None if args.roi is None else tuple(args.roi)
@@ -70,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         print(json.dumps({"error": str(exc)}))
         return 2
-    print(json.dumps({**result.to_json_dict(), "wall_ms": round(wall_ms, 3)}))
+    extra = {} if init_summary is None else {"global_init": init_summary}
+    print(json.dumps({**result.to_json_dict(), **extra, "wall_ms": round(wall_ms, 3)}))
     sys.stdout.flush()
     return 0 if result.converged else 1
