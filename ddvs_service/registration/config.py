@@ -28,6 +28,8 @@ class RegistrationConfig:
       coarser levels (which only need to bring the finer level into its basin).
     - `tracking_levels`: pyramid levels the `Tracker` uses from a warm start (consecutive frames move little); it
       retries with every level when that does not converge (at most `levels` are used).
+    - `predict_motion`: the `Tracker` starts a frame from the constant-velocity extrapolation of the last two good
+      estimates (falling back to the last estimate when that fails); off: from the last estimate.
     - `max_step_fraction`: an update moving a corner by more than this fraction of the ROI size is scaled down.
     - `bands`: row bands of the reduction (parallel work items), 1…32.
     """
@@ -41,6 +43,7 @@ class RegistrationConfig:
     step_tolerance_px: float = 1e-3
     coarse_step_tolerance_px: float = 0.05
     tracking_levels: int = 1
+    predict_motion: bool = True
     max_step_fraction: float = 0.25
     scale_floor: float = 0.5
     min_level_size: int = 16

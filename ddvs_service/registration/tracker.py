@@ -1,7 +1,10 @@
 """Stateful planar tracker for a video stream: registers each frame warm-started from the last good estimate.
 
 Consecutive frames move little, so a frame is first solved on the finest `config.tracking_levels` pyramid levels
-only; when that does not converge it is solved again from the same state over the whole pyramid.
+only, from a constant-velocity prediction when `config.predict_motion` is set and the last two frames converged:
+`G_k = G_{k−1} · G_{k−2}⁻¹ · G_{k−1}` (the last inter-frame motion `G_{k−1} G_{k−2}⁻¹`, in current-image pixels,
+applied once more). When that does not converge the frame is solved again from the last good estimate over the
+whole pyramid.
 
 The state is `G` (SL(3), reference → current full-image pixels), the gains `S`, the bias `β` (eq. (4)) and the
 robust scale σ. A frame whose registration converged replaces the state; any other frame leaves it unchanged and
@@ -40,6 +43,7 @@ class Tracker:
     def reset(self, G: ArrayLike | None = None) -> None:
         """Restart from `G` (identity when None; any scale, positive determinant), unit gains, zero bias."""
         self._G = np.eye(3) if G is None else sl3_normalize(np.asarray(G, dtype=np.float64).reshape(3, 3))
+        self._G_before: NDArray[np.float64] | None = None  # the good estimate before `_G` (None: no velocity)
         self._gains = np.ones(self._problem.grid)
         self._beta = 0.0
         self._scale: float | None = None
@@ -47,9 +51,10 @@ class Tracker:
     def track(self, current: ArrayLike) -> RegistrationResult:
         """Register `current` from the last good state; on failure keep the state and report why."""
         try:
-            result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta, scale0=self._scale,
+            start = self._prediction()
+            result = self._problem.run(current, G0=start, gains0=self._gains, beta0=self._beta, scale0=self._scale,
                                        first_level=self._problem.config.tracking_levels - 1)
-            if not result.converged and len(result.iterations) < len(self._problem.levels):
+            if not result.converged and (start is not self._G or len(result.iterations) < len(self._problem.levels)):
                 result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta,
                                            scale0=self._scale)
         except Exception as exc:  # the tracker's contract: report, never raise
@@ -57,9 +62,20 @@ class Tracker:
         if not np.all(np.isfinite(result.G)):
             return self._failure(f"non-finite estimate ({result.reason})")
         if result.converged:
-            self._G, self._gains, self._beta, self._scale = result.G, result.S, result.beta, result.scale
+            self._G_before, self._G = self._G, result.G
+            self._gains, self._beta, self._scale = result.S, result.beta, result.scale
+        else:
+            self._G_before = None
         return result
 
+    def _prediction(self) -> NDArray[np.float64]:
+        """Start of the next frame: `_G` itself, or its constant-velocity extrapolation (module docstring)."""
+        if self._G_before is None or not self._problem.config.predict_motion:
+            return self._G
+        G = self._G @ np.linalg.solve(self._G_before, self._G)
+        return sl3_normalize(G) if np.all(np.isfinite(G)) and np.linalg.det(G) > 0.0 else self._G
+
     def _failure(self, reason: str) -> RegistrationResult:
+        self._G_before = None
         return RegistrationResult(G=self._G.copy(), S=self._gains.copy(), beta=self._beta, iterations=[],
                                   converged=False, reason=reason)
