@@ -110,20 +110,41 @@ SL3_GENERATORS: F64 = _generators()
 """The 8 traceless generators `A_i` of sl(3), shape (8, 3, 3)."""
 
 
+_SL3_FLAT: F64 = SL3_GENERATORS.reshape(8, 9)
+
+
 def sl3_hat(x: ArrayLike) -> F64:
     """`Σ xᵢ Aᵢ` for an 8-vector x."""
-    return np.tensordot(np.asarray(x, dtype=np.float64).reshape(8), SL3_GENERATORS, axes=1)
+    return (np.asarray(x, dtype=np.float64).reshape(8) @ _SL3_FLAT).reshape(3, 3)
+
+
+_EXPM_MAX_TERMS = 12  # degree cap: at ‖X‖₁ = 0.5 the first omitted term is 0.5¹³ / 13! ≈ 2e-14
+_UNIT_ROUNDOFF = 2.0**-53
+
+
+def _taylor_terms(norm: float) -> int:
+    """Fewest Taylor terms `k` with `norm^(k+1) / (k+1)! ≤ 2⁻⁵³` (the first omitted term below the double-precision
+    unit roundoff), at most `_EXPM_MAX_TERMS`; `norm` is the 1-norm of the scaled matrix (≤ 0.5)."""
+    k, bound = 0, 1.0
+    while k < _EXPM_MAX_TERMS:
+        bound *= norm / (k + 1)
+        if bound <= _UNIT_ROUNDOFF:
+            break
+        k += 1
+    return k
 
 
 def expm(A: ArrayLike) -> F64:
-    """Matrix exponential of a small square matrix (scaling and squaring with a degree-12 Taylor series)."""
+    """Matrix exponential of a small square matrix: scaling and squaring (the scaled matrix has ‖X‖₁ ≤ 0.5) with a
+    Taylor series truncated where the next term is below the double-precision roundoff (at most degree 12; a
+    Gauss-Newton increment of ~1e-3 needs 5 terms)."""
     A = np.asarray(A, dtype=np.float64)
     norm = float(np.linalg.norm(A, ord=1))
     s = max(0, int(np.ceil(np.log2(norm))) + 1) if norm > 0.5 else 0
     X = A / (2.0**s)
     E = np.eye(A.shape[0])
     term = np.eye(A.shape[0])
-    for k in range(1, 13):
+    for k in range(1, _taylor_terms(norm / 2.0**s) + 1):
         term = term @ X / k
         E = E + term
     for _ in range(s):
