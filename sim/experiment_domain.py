@@ -24,8 +24,7 @@ that standard deviation (grey levels, seeded per trial and frame); both quantise
 
 Outcome of a trial, in this order:
 - "lost": `LOST_AFTER` consecutive frames the estimator could not register (the camera holds still meanwhile);
-- "diverged": the camera left the working volume (distance to the target centre outside [0.2, 3] m) or the
-  commanded twist became non-finite;
+- "diverged": the camera left the working volume (distance to the target centre outside [0.2, 3] m);
 - "budget": no convergence within `max_images` images;
 - "wrong_pose": converged, but the true final pose error exceeds `max_translation_m` or `max_rotation_deg`;
 - "success": converged with a small true pose error (the ground truth is used only for this verdict).
@@ -165,9 +164,16 @@ def _texture() -> NDArray[np.float32]:
     return image.astype(np.float32)
 
 
-def run_trial(target: str, law: str, T_ref_start: F64, settings: DomainSettings, seed: int) -> Trial:
-    """Servo from `T_ref_start` to the reference pose with `law` on `target` (module docstring); `seed` keys the
-    sensor noise."""
+def trial_start(settings: DomainSettings, size: float, trial: int) -> tuple[F64, int]:
+    """`(T_ref_start, noise seed)` of trial number `trial` of displacement `size`: the same for every target and law."""
+    T = initial_pose(size, np.random.default_rng([settings.seed, round(1000 * size), trial]))
+    return T, settings.seed * 100_003 + round(1000 * size) * 1009 + trial
+
+
+def run_trial(target: str, law: str, size: float, trial: int, settings: DomainSettings) -> Trial:
+    """Servo with `law` on `target` from the start of trial number `trial` of displacement `size` to the reference
+    pose (module docstring)."""
+    T_ref_start, seed = trial_start(settings, size, trial)
     surface = make_surface(target)
     w, h = PAPER_ROI_SIZE
     roi = (round(CAMERA.cx - 0.5 * (w - 1)), round(CAMERA.cy - 0.5 * (h - 1)), w, h)
@@ -211,7 +217,7 @@ def run_trial(target: str, law: str, T_ref_start: F64, settings: DomainSettings,
     if outcome == "converged":
         small = t_err <= settings.max_translation_m and r_err <= settings.max_rotation_deg
         outcome = "success" if small else "wrong_pose"
-    return Trial(target, law, 0.0, 0, float(np.linalg.norm(T_ref_start[:3, 3])),
+    return Trial(target, law, float(size), trial, float(np.linalg.norm(T_ref_start[:3, 3])),
                  float(np.degrees(np.linalg.norm(so3_log(T_ref_start[:3, :3])))), outcome, images, float(norm),
                  t_err, r_err, note)
 
@@ -235,16 +241,13 @@ def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool 
     trials: list[Trial] = []
     for k in range(settings.trials):
         for size in settings.sizes:
-            T_start = initial_pose(size, np.random.default_rng([settings.seed, round(1000 * size), k]))
             for target in settings.targets:
                 for law in settings.laws:
                     key = (target, law, float(size), k)
                     if key in done:
                         trials.append(done[key])
                         continue
-                    noise_seed = settings.seed * 100_003 + round(1000 * size) * 1009 + k
-                    trial = run_trial(target, law, T_start, settings, noise_seed)
-                    trial.size, trial.trial = float(size), k
+                    trial = run_trial(target, law, size, k, settings)
                     trials.append(trial)
                     if journal is not None:
                         with open(journal, "a", encoding="utf-8") as f:

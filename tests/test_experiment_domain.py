@@ -22,6 +22,7 @@ from sim.experiment_domain import (
     markdown_table,
     run_domain,
     success_table,
+    trial_start,
 )
 
 
@@ -36,12 +37,15 @@ def test_initial_pose_has_the_size_and_sees_the_target(size):
         assert X[2] > 0 and 0 <= u < CAMERA.width and 0 <= v < CAMERA.height
 
 
-def test_initial_pose_is_reproducible_and_directions_vary():
-    a = initial_pose(2.0, np.random.default_rng([3, 2000, 1]))
-    b = initial_pose(2.0, np.random.default_rng([3, 2000, 1]))
-    c = initial_pose(2.0, np.random.default_rng([3, 2000, 2]))
-    np.testing.assert_array_equal(a, b)
-    assert not np.allclose(a[:3, 3], c[:3, 3])
+def test_trial_starts_are_reproducible_and_vary_with_trial_size_and_seed():
+    settings = DomainSettings(seed=3)
+    (a, seed_a), (b, seed_b) = trial_start(settings, 2.0, 1), trial_start(DomainSettings(seed=3, sizes=(2.0,)), 2.0, 1)
+    np.testing.assert_array_equal(a, b)  # independent of the other sizes swept
+    assert seed_a == seed_b
+    others = [trial_start(settings, 2.0, 2), trial_start(DomainSettings(seed=4), 2.0, 1), trial_start(settings, 3.0, 1)]
+    for T, seed in others:
+        assert not np.allclose(a[:3, 3] / np.linalg.norm(a[:3, 3]), T[:3, 3] / np.linalg.norm(T[:3, 3]))
+        assert seed != seed_a
 
 
 def test_settings_reject_unknown_names_and_bad_values():
