@@ -23,9 +23,11 @@ class RegistrationConfig:
       never below `scale_floor` grey levels.
     - `min_inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged.
     - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
-    - `step_tolerance_px`: convergence when the last update moves every ROI corner by less than this many
-      full-resolution pixels at the finest level; `coarse_step_tolerance_px`: the same, in level pixels, on the
-      coarser levels (which only need to bring the finer level into its basin).
+    - `step_tolerance_px`: convergence when the ROI corners are within this many full-resolution pixels of the
+      fixed point at the finest level: the planar engine bounds the motion still to come by the geometric tail of
+      its last steps (`planar._remaining_motion`; the general engine uses the last step itself);
+      `coarse_step_tolerance_px`: the same, in level pixels, on the coarser levels (which only need to bring the
+      finer level into its basin).
     - `tracking_levels`: pyramid levels the `Tracker` uses from a warm start (consecutive frames move little); it
       retries with every level when that does not converge (at most `levels` are used).
     - `predict_motion`: the `Tracker` starts a frame from the constant-velocity extrapolation of the last two good
