@@ -281,8 +281,8 @@ class PlanarRegistration:
         photometric: bool = True,
     ) -> tuple[int, bool, str, bool]:
         """Gauss-Newton at one level over the sl(3) coordinates `geometric` (and the photometric unknowns unless
-        `photometric` is False) until an update moves the ROI corners by less than `tolerance` level pixels;
-        updates `state`; returns (iterations, converged, reason, fatal failure)."""
+        `photometric` is False) until the corner motion still to come (`_remaining_motion` of the steps so far) is
+        below `tolerance` level pixels; updates `state`; returns (iterations, converged, reason, fatal failure)."""
         from kernels.planar_step import planar_step
 
         cfg = self.config
