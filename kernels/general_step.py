@@ -5,17 +5,21 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
 - warp: `P = G p* + ρ(p*) e = [X, Y, Z]`, `w = (X/Z, Y/Z)`; `ρ(p*) = Σ_m a_m x^i y^j` with `(x, y)` the basis
   normalisation of the reference pixel (`PARAMS_BNORM`) and `a` the monomial coefficients of the current `ρ*`;
 - residual `r = S(p*) · I(w) + β − I*(p*)`;
+- `I(w)` and its exact gradient `∇I(w)` from one Keys bicubic interpolation (`cubic_sample`, 4×4 taps): bilinear
+  interpolation's phase-dependent blur biased the optimum (gain 1.01–1.015 on unit-gain renders, warp 0.01–0.03 px
+  off on the paper's trajectory); bicubic brings the gain to 1.000–1.001 and lowers that warp error by 30–40 %;
 - image gradient in current pixels, mean of both sides (ESM-like): `g = ½ (S ∇I(w) + ∇I*(p*) A⁻¹)`, `A = ∂w/∂p*`
-  (analytic, including `∇ρ`), `∇I(w)` by central differences of bilinear samples at `w ± 1 px`;
+  (analytic, including `∇ρ`);
 - Jacobian columns, in this order:
   - 8 sl(3) coordinates of a left increment `P ← N⁻¹ exp(Σ xᵢ Aᵢ) N P` (so `G ← M G`, `e ← M e`; `Aᵢ` =
     `ddvs_service.lie.SL3_GENERATORS`, `N` the normalisation `q = (p − c) / s` of the current-image point);
   - 3 epipole coordinates `e ← e + N⁻¹ δe'` (normalised units): `∂P = ρ N⁻¹ δe'`;
   - when `with_rho`: one per parallax basis function `φ_k = Σ_m B_km x^i y^j`: `∂P = φ_k e δc_k`;
   - gain nodes `φ_gain · I(w)` and the bias 1 (as `kernels.planar_step`);
-- reference pixels masked by the caller (`planar_step.MASKED`) are skipped, as are warps leaving the image;
+- reference pixels masked by the caller (`planar_step.MASKED`) are skipped, as are warps whose 4×4 taps leave the
+  image;
 - robust weight and statistics exactly as `kernels.planar_step` (Huber/Tukey with a caller-given σ, valid and inlier
-  counts, Σ r², a log-histogram of |r| whose median gives the next MAD scale).
+  counts, Σ r², the histogram of |r| of `planar_step.hist_bin` whose median gives the next MAD scale).
 
 Reduction as in PLATFORM-NOTES: each thread owns a band of rows, sums into registers, writes one partial; a serial
 pass adds the partials. One float32 parameter array in (`PARAMS_*`), one float32 work array out (`work_size`).
@@ -25,19 +29,19 @@ pass adds the partials. One float32 parameter array in (`PARAMS_*`), one float32
 import taichi as ti
 
 from kernels.planar_step import (
+    HIST_BINS,
     INLIER_C,
-    LOG2_MAX,
-    LOG2_MIN,
     MASK_LIMIT,
     MAX_BANDS,
     N_STATS,
-    NBINS,
     gain_at,
+    hist_bin,
+    hist_value,
     robust_weight,
 )
 from kernels.planar_step import PARAMS_GAINS as PLANAR_GAINS
 from kernels.planar_step import PARAMS_SPAN as PLANAR_SPAN
-from kernels.sampling import homography_apply, projected_sample
+from kernels.sampling import homography_apply
 
 MAX_MONOMIALS = 16  # degree ≤ 3 per axis: x^i y^j, 0 ≤ i, j ≤ 3
 
@@ -76,7 +80,7 @@ def n_acc(n: int) -> int:
 
 def work_size(n: int) -> int:
     """float32 work array size for `n` columns: final sums, per-band partials, per-band histograms."""
-    return n_acc(n) * (1 + MAX_BANDS) + NBINS * MAX_BANDS
+    return n_acc(n) * (1 + MAX_BANDS) + HIST_BINS * MAX_BANDS
 
 
 @ti.func
@@ -86,6 +90,47 @@ def _powers(t: ti.f32, degree: ti.template()):
     for i in ti.static(range(1, degree + 1)):
         p[i] = p[i - 1] * t
     return p
+
+
+@ti.func
+def _keys(t: ti.f32):
+    """Keys cubic convolution (a = −½) weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1), and their derivatives."""
+    t2 = t * t
+    t3 = t2 * t
+    w = ti.Vector([-0.5 * (t3 + t) + t2, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * (t3 - t2)])
+    d = ti.Vector([-1.5 * t2 + 2.0 * t - 0.5, 4.5 * t2 - 5.0 * t, -4.5 * t2 + 4.0 * t + 0.5, 1.5 * t2 - t])
+    return w, d
+
+
+@ti.func
+def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32):
+    """Keys bicubic sample of `img` at column `x`, row `y` and its exact gradient (grey levels per pixel).
+
+    Returns `(value, d/dx, d/dy, ok)`; `ok = 0` (zeros) unless the 4×4 taps lie inside, i.e. `1 ≤ x, y` and
+    `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences)."""
+    h = img.shape[0]
+    w = img.shape[1]
+    val = 0.0
+    gx = 0.0
+    gy = 0.0
+    ok = 0
+    if x >= 1.0 and y >= 1.0 and x <= w - 2.0 and y <= h - 2.0:
+        x0 = ti.min(ti.cast(ti.floor(x), ti.i32), w - 3)
+        y0 = ti.min(ti.cast(ti.floor(y), ti.i32), h - 3)
+        wx, dx = _keys(x - x0)
+        wy, dy = _keys(y - y0)
+        for i in ti.static(range(4)):
+            row = 0.0
+            row_dx = 0.0
+            for j in ti.static(range(4)):
+                c = img[y0 - 1 + i, x0 - 1 + j]
+                row += wx[j] * c
+                row_dx += dx[j] * c
+            val += wy[i] * row
+            gx += wy[i] * row_dx
+            gy += dy[i] * row
+        ok = 1
+    return val, gx, gy, ok
 
 
 @ti.kernel
@@ -127,12 +172,11 @@ def general_step(
     kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
     hr = ref.shape[0]
     wr = ref.shape[1]
-    bin_scale = NBINS / (LOG2_MAX - LOG2_MIN)
     for it in range(nb * 512):  # one band per 512-iteration block (PLATFORM-NOTES)
         if it % 512 == 0:
             b = it // 512
-            hoff = hist0 + b * NBINS
-            for k in range(NBINS):
+            hoff = hist0 + b * HIST_BINS
+            for k in range(HIST_BINS):
                 work[hoff + k] = 0.0
             acc = ti.Vector.zero(ti.f32, NACC)
             rows = v1 - v0 + 1
@@ -169,13 +213,9 @@ def general_step(
                     iz = 1.0 / ti.select(ok_z, Z, 1.0)
                     x = X * iz
                     y = Y * iz
-                    c0, ok0 = projected_sample(cur, x, y, 1.0)
-                    cl, okl = projected_sample(cur, x - 1.0, y, 1.0)
-                    cr, okr = projected_sample(cur, x + 1.0, y, 1.0)
-                    cu, oku = projected_sample(cur, x, y - 1.0, 1.0)
-                    cd, okd = projected_sample(cur, x, y + 1.0, 1.0)
+                    c0, cgx, cgy, ok = cubic_sample(cur, x, y)
                     unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
-                    if ok_z and unmasked and ok0 + okl + okr + oku + okd == 5:
+                    if ok_z and unmasked and ok == 1:
                         gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
                         r = gain * c0 + beta - ir
                         # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
@@ -190,8 +230,8 @@ def general_step(
                         a01 = (pxv - x * pzv) * iz
                         a11 = (pyv - y * pzv) * iz
                         det = a00 * a11 - a01 * a10
-                        gx = gain * 0.5 * (cr - cl)
-                        gy = gain * 0.5 * (cd - cu)
+                        gx = gain * cgx
+                        gy = gain * cgy
                         if ti.abs(det) > 1e-12:
                             gx = 0.5 * (gx + (gxr * a11 - gyr * a10) / det)
                             gy = 0.5 * (gy + (gyr * a00 - gxr * a01) / det)
@@ -234,9 +274,8 @@ def general_step(
                         if ti.abs(r) <= INLIER_C * sigma:
                             racc[NT + P + 1] += 1.0
                         racc[NT + P + 2] += r * r
-                        lb = ti.log(ti.max(ti.abs(r), 2.0**LOG2_MIN)) / ti.log(2.0)
-                        k_bin = ti.min(ti.cast((lb - LOG2_MIN) * bin_scale, ti.i32), NBINS - 1)
-                        work[hoff + k_bin] = work[hoff + k_bin] + 1.0  # band-owned: plain store, no atomic
+                        k_bin = hoff + hist_bin(ti.abs(r))
+                        work[k_bin] = work[k_bin] + 1.0  # band-owned: plain store, no atomic
                 acc += racc
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
@@ -247,20 +286,16 @@ def general_step(
             for b in range(nb):
                 total += ti.cast(work[(1 + b) * NACC + k], ti.f64)
             work[k] = ti.cast(total, ti.f32)
-        n_valid = 0.0
-        for k in range(NBINS):
-            for b in range(nb):
-                n_valid += work[hist0 + b * NBINS + k]
-        half = 0.5 * n_valid
+        half = 0.5 * work[NT + P]
         cum = 0.0
         median = 0.0
         found = 0
-        for k in range(NBINS):
+        for k in range(HIST_BINS):
             count = 0.0
             for b in range(nb):
-                count += work[hist0 + b * NBINS + k]
+                count += work[hist0 + b * HIST_BINS + k]
             if found == 0 and count > 0.0 and cum + count >= half:
-                median = 2.0 ** (LOG2_MIN + (k + (half - cum) / count) / bin_scale)
+                median = hist_value(k, (half - cum) / count)
                 found = 1
             cum += count
         work[NACC - 1] = median
@@ -292,7 +327,9 @@ def render_general(
             for j in ti.static(range(D1)):
                 rho += params[PARAMS_RHO + i * D1 + j] * xp[i] * yp[j]
         X, Y, Z = homography_apply(params, PARAMS_G, u, v)
-        val, ok = projected_sample(cur, X + rho * params[PARAMS_E], Y + rho * params[PARAMS_E + 1],
-                                   Z + rho * params[PARAMS_E + 2])
+        Z += rho * params[PARAMS_E + 2]
+        iz = 1.0 / ti.select(Z > 1e-8, Z, 1.0)
+        val, _gx, _gy, ok = cubic_sample(cur, (X + rho * params[PARAMS_E]) * iz, (Y + rho * params[PARAMS_E + 1]) * iz)
+        ok = ok if Z > 1e-8 else 0
         gain, _phi = gain_at(params, u, v, grid_rows, grid_cols)
         out[rr, cc] = gain * val + params[PARAMS_BETA] if ok == 1 else ti.math.nan
