@@ -41,7 +41,7 @@ from ddvs_service.lie import sl3_exp
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey
-from ddvs_service.registration.planar import MAD_TO_SIGMA, PlanarRegistration, Roi
+from ddvs_service.registration.planar import MAD_TO_SIGMA, PlanarRegistration, Roi, _remaining_motion
 
 F64 = NDArray[np.float64]
 DEGENERATE_RCOND = 1e-9
@@ -335,9 +335,10 @@ class GeneralRegistration:
     def _solve(
         self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool
     ) -> tuple[int, bool, str, bool]:
-        """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure). Converged: the last
-        step moved the probe points by less than `step_tolerance_px` (full resolution) at the finest level, by less
-        than `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level)."""
+        """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure). Converged: the probe
+        points' motion still to come (`planar._remaining_motion`: the geometric tail of the last contractions of the
+        steps, as the planar engine) is below `step_tolerance_px` (full resolution) at the finest level, below
+        `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level)."""
         cfg = self.config.base
         tolerance = cfg.step_tolerance_px if level.index == 0 else cfg.coarse_step_tolerance_px
         ref, cur = self.reference[level.index], pyramid[level.index]
@@ -347,6 +348,7 @@ class GeneralRegistration:
         N = level.N
         N_inv = np.linalg.inv(N)
         e_sl = slice(8, 11)
+        steps: list[float] = []
         for it in range(1, cfg.max_iterations + 1):
             H, g, stats = self._normal_equations(level, ref, cur, state, with_rho=free_rho)
             n_valid, n_inliers, sum_r2, median = stats
@@ -390,8 +392,11 @@ class GeneralRegistration:
             state.G, state.e, state.c, state.gains, state.beta = new.G, new.e, new.c, new.gains, new.beta
             if free_rho and free_e:
                 self._fix_scale(state)
-            if step < tolerance:
-                return it, True, f"converged: last step {step:.1e} px < {tolerance:g} px", False
+            steps.append(step)
+            remaining = _remaining_motion(steps)
+            if remaining < tolerance:
+                return it, True, (f"converged: last step {step:.1e} px, at most {remaining:.1e} px left "
+                                  f"< {tolerance:g} px"), False
         return cfg.max_iterations, False, f"max_iterations ({cfg.max_iterations}) reached at level {level.index}", False
 
     def _apply(

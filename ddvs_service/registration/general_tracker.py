@@ -4,7 +4,10 @@
   frame (several epipole starts, `general.GeneralRegistration.estimate`), else `e` restarts from 0 with ρ* kept.
 - Every other frame: `G`, `e`, `S`, `β` warm-started from the last good frame, ρ* held fixed (13 unknowns with one
   gain), so ρ* cannot drift when the camera stops translating (`e → 0`). Like the planar `Tracker`, the frame is
-  solved on the finest `tracking_levels` pyramid levels first, and again over the whole pyramid when that fails.
+  solved on the finest `tracking_levels` pyramid levels first, from the constant-velocity prediction when
+  `config.base.predict_motion` is set and the last two frames converged: the last inter-frame motion
+  `M = G_{k−1} G_{k−2}⁻¹` (current-image pixels) applied once more, `(G, e) = (M G_{k−1}, M e_{k−1})` (eq. (2):
+  `P_k = M P_{k−1}`); when that fails, again from the last good estimate over the whole pyramid.
   The information on ρ* (given `e`) of each converged frame is added to `rho_information`; it grows only while
   the camera translates.
 - A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags);
@@ -49,6 +52,7 @@ class GeneralTracker:
         self._rho: F64 | None = None if rho is None else np.asarray(rho, dtype=np.float64).reshape(n).copy()
         self._information = np.zeros((n, n))
         self._G: F64 | None = None  # None: (re)acquire globally on the next frame
+        self._G_before: F64 | None = None  # the good estimate before `_G` (None: no velocity known)
         self._e = np.zeros(3)
         self._gains = np.ones(self._problem.grid)
         self._beta = 0.0
@@ -86,6 +90,7 @@ class GeneralTracker:
             return self._count_failure(self._failure(f"non-finite estimate ({result.reason})", [FLAG_DIVERGED]))
         if not result.converged:
             return self._count_failure(result)
+        self._G_before = self._G
         self._G, self._e, self._gains, self._beta = result.G, result.e, result.S, result.beta
         self._scale = result.scale if np.isfinite(result.scale) else None
         self._information = self._information + result.rho_information
@@ -106,13 +111,28 @@ class GeneralTracker:
                 return result
             return problem.track(current, G0, np.zeros(3), self._rho)
         assert self._rho is not None
-        warm = (current, self._G, self._e, self._rho, self._gains, self._beta, self._scale)
-        result = problem.track(*warm, first_level=problem.config.base.tracking_levels - 1)
-        if not result.converged and len(result.iterations) < len(problem.levels):
-            result = problem.track(*warm)
+        G0, e0 = self._prediction()
+        photometric = (self._gains, self._beta, self._scale)
+        result = problem.track(current, G0, e0, self._rho, *photometric,
+                               first_level=problem.config.base.tracking_levels - 1)
+        if not result.converged and (G0 is not self._G or len(result.iterations) < len(problem.levels)):
+            result = problem.track(current, self._G, self._e, self._rho, *photometric)
         return result
 
+    def _prediction(self) -> tuple[F64, F64]:
+        """Start `(G, e)` of the next frame: the last estimate, or its constant-velocity extrapolation (module
+        docstring)."""
+        assert self._G is not None
+        if self._G_before is None or not self._problem.config.base.predict_motion:
+            return self._G, self._e
+        M = self._G @ np.linalg.inv(self._G_before)
+        G, e = M @ self._G, M @ self._e
+        if not (np.all(np.isfinite(G)) and np.all(np.isfinite(e)) and np.linalg.det(G) > 0.0):
+            return self._G, self._e
+        return G, e
+
     def _count_failure(self, result: GeneralResult) -> GeneralResult:
+        self._G_before = None
         self._failures += 1
         if self._failures >= self._problem.config.lost_after and self._G is not None:
             self._G = None
