@@ -81,15 +81,15 @@ def test_basis_fixes_the_plane_gauge() -> None:
 
 @pytest.mark.slow
 def test_paper_trajectory_from_a_cold_start() -> None:
-    """Cold start at the paper's initial displacement (no ρ* prior, G from the global initialiser), then every frame
-    of the first 20 images and every 5th image to convergence of the exact-geometry decoupled run: the estimated warp
+    """Cold start at the paper's initial displacement (no ρ* prior, G from the global initialiser), then every 2nd
+    image of the first 20 and every 10th to convergence of the exact-geometry decoupled run: the estimated warp
     is within 0.1 px RMS of the true warp over the ROI, and the control error (16) from the estimate matches the
     ground-truth one to 1 % of its norm or 1e-4 absolute on the first part (see the assertion's comment)."""
     saddle = paper_saddle()
     trajectory = run_synthetic("ddvs")  # exact geometry: the poses of the paper's loop
     law = ControlLaw(ControlConfig("ddvs", gains=0.4, stop_threshold=1e-3), INTR)
     tracker = GeneralTracker(render(saddle, np.eye(4)), ROI)
-    frames = [*range(20), *range(20, trajectory.images, 5), trajectory.images - 1]
+    frames = [*range(0, 20, 2), *range(20, trajectory.images, 10), trajectory.images - 1]
     worst_rms, worst_err = 0.0, []
     for k in frames:
         T = pose(trajectory.rotations[k], trajectory.positions[k])
@@ -102,15 +102,18 @@ def test_paper_trajectory_from_a_cold_start() -> None:
         worst_err.append(float(np.linalg.norm(estimated - exact) / max(0.01 * np.linalg.norm(exact), 1e-4)))
     assert worst_rms < 0.1
     assert FLAG_NO_PARALLAX not in result.flags
-    # Met (≤ 1) over images 0–165 (|ε̄| from 1.7 down to ~0.1). NOT met yet nearer the equilibrium: measured up to
-    # 14× the tolerance (e.g. 1.4e-3 absolute); the bound below only guards against regressions of that gap.
-    # Diagnosis (see the report): the gap is the image registration's error on the perspective terms h31, h32 of H
-    # (both ε̄_v and ε̄_ω contain them), not ρ*: tracking with the exact ρ* coefficients, or planar registration on the
-    # same frames, gives the same error; supersampled rendering does not change it; it is the bias of the bilinear
-    # interpolation (the least-squares minimum itself sits 0.02–0.04 px off the true warp).
-    early = frames.index(165) + 1
-    assert max(worst_err[:early]) <= 1.0, worst_err
-    assert max(worst_err) <= 20.0, worst_err
+    # Met (≤ 1) over images 0–180 (|ε̄| from 1.7 down to ~0.05). NOT met nearer the equilibrium: measured up to 12×
+    # the tolerance (images 330 and 390) and ~5× on the last images (5e-4 absolute); the bound below only guards
+    # against regressions of that gap. Diagnosis (see the report): the warp is within 0.018 px RMS of the truth, and
+    # a geometric fit of (G, e) with this ρ* model to the true warp gives ≤ 0.63×, so the model is not the limit;
+    # the gap is the image registration's residual error on the perspective terms h31, h32, which the tolerance
+    # (~1e-4 on ε̄) puts at the ~0.002 px level over the ROI. Bicubic sampling (kernels.general_step) removed the
+    # bilinear contrast loss (gain 1.01 -> 1.000) and a third of the warp error, but not this gap: what is left
+    # comes from the rendered images themselves (point-sampled bilinear texture, not band-limited), which no
+    # interpolator of the current image reproduces exactly.
+    early = [err for k, err in zip(frames, worst_err) if k <= 180]
+    assert max(early) <= 1.0, worst_err
+    assert max(worst_err) <= 15.0, worst_err
     assert np.all(np.linalg.eigvalsh(tracker.rho_information) > 0.0)
 
 
