@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.planar import _remaining_motion, register
+from ddvs_service.registration.planar import register, remaining_motion
 from ddvs_service.registration.tracker import Tracker
 
 DATA = Path("/work/shared/datasets/oxford")
@@ -151,9 +151,9 @@ def test_tracker_converges_in_few_iterations(predict, median_bound, max_bound):
     assert max(warm) <= max_bound, iterations
 
 
-def test_remaining_motion_is_the_geometric_tail():
-    assert _remaining_motion([0.5]) == 0.5  # no contraction observed yet: the step itself
-    assert _remaining_motion([1.0, 0.5]) == 0.5
-    assert _remaining_motion([0.8, 0.2, 0.05]) == pytest.approx(0.05 * 0.25 / 0.75)  # q = max(0.25, 0.25)
-    assert _remaining_motion([0.8, 0.4, 0.04]) == pytest.approx(0.04 * 0.5 / 0.5)  # the slower contraction wins
-    assert _remaining_motion([0.1, 0.09, 0.085]) == 0.085  # q ≥ MAX_RATE: not trusted
+def testremaining_motion_is_the_geometric_tail():
+    assert remaining_motion([0.5]) == 0.5  # no contraction observed yet: the step itself
+    assert remaining_motion([1.0, 0.5]) == 0.5
+    assert remaining_motion([0.8, 0.2, 0.05]) == pytest.approx(0.05 * 0.25 / 0.75)  # q = max(0.25, 0.25)
+    assert remaining_motion([0.8, 0.4, 0.04]) == pytest.approx(0.04 * 0.5 / 0.5)  # the slower contraction wins
+    assert remaining_motion([0.1, 0.09, 0.085]) == 0.085  # q ≥ MAX_RATE: not trusted

@@ -25,7 +25,7 @@ class RegistrationConfig:
     - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
     - `step_tolerance_px`: convergence when the ROI corners are within this many full-resolution pixels of the
       fixed point at the finest level: the planar engine bounds the motion still to come by the geometric tail of
-      its last steps (`planar._remaining_motion`; the general engine uses the last step itself);
+      its last steps (`planar.remaining_motion`, used by the planar and the general engines);
       `coarse_step_tolerance_px`: the same, in level pixels, on the coarser levels (which only need to bring the
       finer level into its basin).
     - `tracking_levels`: pyramid levels the `Tracker` uses from a warm start (consecutive frames move little); it

@@ -41,7 +41,7 @@ from ddvs_service.lie import sl3_exp
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey
-from ddvs_service.registration.planar import MAD_TO_SIGMA, PlanarRegistration, Roi, _remaining_motion
+from ddvs_service.registration.planar import MAD_TO_SIGMA, PlanarRegistration, Roi, remaining_motion
 
 F64 = NDArray[np.float64]
 DEGENERATE_RCOND = 1e-9
@@ -336,7 +336,7 @@ class GeneralRegistration:
         self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool
     ) -> tuple[int, bool, str, bool]:
         """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure). Converged: the probe
-        points' motion still to come (`planar._remaining_motion`: the geometric tail of the last contractions of the
+        points' motion still to come (`planar.remaining_motion`: the geometric tail of the last contractions of the
         steps, as the planar engine) is below `step_tolerance_px` (full resolution) at the finest level, below
         `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level)."""
         cfg = self.config.base
@@ -393,7 +393,7 @@ class GeneralRegistration:
             if free_rho and free_e:
                 self._fix_scale(state)
             steps.append(step)
-            remaining = _remaining_motion(steps)
+            remaining = remaining_motion(steps)
             if remaining < tolerance:
                 return it, True, (f"converged: last step {step:.1e} px, at most {remaining:.1e} px left "
                                   f"< {tolerance:g} px"), False

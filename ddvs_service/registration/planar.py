@@ -281,7 +281,7 @@ class PlanarRegistration:
         photometric: bool = True,
     ) -> tuple[int, bool, str, bool]:
         """Gauss-Newton at one level over the sl(3) coordinates `geometric` (and the photometric unknowns unless
-        `photometric` is False) until the corner motion still to come (`_remaining_motion` of the steps so far) is
+        `photometric` is False) until the corner motion still to come (`remaining_motion` of the steps so far) is
         below `tolerance` level pixels; updates `state`; returns (iterations, converged, reason, fatal failure)."""
         from kernels.planar_step import planar_step
 
@@ -338,7 +338,7 @@ class PlanarRegistration:
             state.gains = state.gains + delta[self._sl_S].reshape(self.grid)
             state.beta = state.beta + float(delta[self._sl_b][0])
             steps.append(step)
-            remaining = _remaining_motion(steps)
+            remaining = remaining_motion(steps)
             if remaining < tolerance:
                 outcome = (it, True, f"converged: last step {step:.1e} px, at most {remaining:.1e} px left "
                                      f"< {tolerance:g} px", False)
@@ -347,7 +347,7 @@ class PlanarRegistration:
         return outcome
 
 
-def _remaining_motion(steps: list[float]) -> float:
+def remaining_motion(steps: list[float]) -> float:
     """Bound on the corner motion (pixels) still to come after the updates that moved a corner by `steps` (in order):
     the tail `s · q / (1 − q)` of a geometric series from the last step `s`, with `q` the slower of the last two
     contractions `steps[k] / steps[k − 1]`. Gauss-Newton on bilinearly interpolated images converges linearly
