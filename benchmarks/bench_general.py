@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from ddvs_service.camera import Intrinsics
+from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.tracker import Tracker
@@ -23,7 +24,7 @@ from sim.surfaces import paper_saddle
 
 INTR = Intrinsics.centred(500.0, 550, 418)
 ROI = (175, 134, 200, 150)
-PHOTO = "/work/shared/datasets/oxford/graf/img1.png"
+PHOTO = str(dataset_image("oxford/graf/img1.png"))
 
 
 def frames(n: int) -> list[np.ndarray]:

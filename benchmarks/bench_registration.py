@@ -37,11 +37,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.numpy_iteration import numpy_step  # noqa: E402
+from ddvs_service.datasets import dataset_image  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import PlanarRegistration  # noqa: E402
 from ddvs_service.registration.tracker import Tracker  # noqa: E402
 
-IMAGE = Path("/work/shared/datasets/oxford/boat/img1.png")
+IMAGE = dataset_image("oxford/boat/img1.png")
 README = ROOT / "benchmarks" / "README.md"
 ITERATIONS = 20  # K iterations per timed call (ours and ECC)
 
@@ -49,7 +50,7 @@ ITERATIONS = 20  # K iterations per timed call (ours and ECC)
 def load_reference() -> np.ndarray:
     img = cv2.imread(str(IMAGE), cv2.IMREAD_GRAYSCALE)
     if img is None:
-        raise FileNotFoundError(f"benchmark image {IMAGE} is missing (see /work/shared/datasets/README)")
+        raise FileNotFoundError(f"benchmark image {IMAGE} could not be read as an image")
     return img.astype(np.float32)
 
 

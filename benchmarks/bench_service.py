@@ -30,6 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ddvs_service.datasets import dataset_image  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for running as a script
     Command,
     Header,
@@ -46,7 +47,7 @@ from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for ru
 from ddvs_service.protocol.upload import encode_upload  # noqa: E402
 
 W, H, F = 320, 240, 420.0
-DATASET = ROOT.parent / "shared" / "datasets" / "oxford" / "boat" / "img1.png"
+DATASET = dataset_image("oxford/boat/img1.png")
 
 
 def scene() -> np.ndarray:

@@ -25,10 +25,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_registration import write_readme_section  # noqa: E402
+from ddvs_service.datasets import datasets_dir  # noqa: E402
 from ddvs_service.registration.images import to_grey  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 
-DATA = Path("/work/shared/datasets/oxford")
+DATA = datasets_dir() / "oxford"
 PAIRS = [("boat", 2)] + [("bikes", k) for k in range(2, 7)] + [("leuven", k) for k in range(2, 7)]
 ROI_SIZES = ((200, 150), (400, 300))
 FAILED_PX = 5.0

@@ -46,7 +46,7 @@ from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from ddvs_service.service.config import ControlSettings, RegistrationSettings
 from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
-from sim.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
+from sim.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE, load_texture
 from sim.freeflyer import Appearance, FreeFlyer, render_view
 from sim.surfaces import Plane, Surface, paper_saddle
 
@@ -156,12 +156,7 @@ def appearance(t: float, settings: DomainSettings, seed: int) -> Appearance:
 
 @cache
 def _texture() -> NDArray[np.float32]:
-    import cv2
-
-    image = cv2.imread(TEXTURE, cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise ValueError(f"cannot read the texture image {TEXTURE!r}")
-    return image.astype(np.float32)
+    return load_texture(TEXTURE)
 
 
 def trial_start(settings: DomainSettings, size: float, trial: int) -> tuple[F64, int]:

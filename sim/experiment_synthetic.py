@@ -46,7 +46,7 @@ PAPER_T = (0.17, -0.11, 0.01)
 PAPER_R = (-0.1, -0.31, 1.04)
 PAPER_IMAGES = {"dvs": 905, "ddvs": 762}
 PAPER_ROI_SIZE = (200, 150)  # pixels used by the paper's synthetic experiment, centred on the control point
-TEXTURE = "/work/shared/datasets/oxford/graf/img1.png"
+TEXTURE = "oxford/graf/img1.png"  # in the datasets folder (ddvs_service.datasets)
 LAW_NAMES = {"dvs": "dvs_reduced", "ddvs": "ddvs"}
 
 
@@ -176,7 +176,7 @@ def run_synthetic(law: str, setup: SyntheticSetup = SyntheticSetup(), geometry: 
     intr = Intrinsics.centred(setup.f, setup.width, setup.height)
     saddle = paper_saddle(setup.depth, setup.a)
     control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=setup.gain, stop_threshold=setup.threshold), intr)
-    texture = _load_texture(setup.texture) if geometry != "exact" else None
+    texture = load_texture(setup.texture) if geometry != "exact" else None
     plant = FreeFlyer(saddle, intr, np.eye(4), pose(so3_exp(setup.r), setup.t), setup.dt, texture=texture,
                       scaling=setup.scaling)
     reference = None if texture is None else render_view(saddle, texture, intr, np.eye(4))[0]
@@ -233,13 +233,17 @@ def run_synthetic(law: str, setup: SyntheticSetup = SyntheticSetup(), geometry: 
     )
 
 
-def _load_texture(path: str) -> NDArray[np.float32]:
-    """The grey texture image at `path` as float32 grey levels."""
+def load_texture(path: str) -> NDArray[np.float32]:
+    """The grey texture image at `path` (a file, or a name in the datasets folder such as "oxford/graf/img1.png")
+    as float32 grey levels."""
     import cv2
 
-    image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    from ddvs_service.datasets import dataset_image
+
+    file = path if Path(path).is_file() else str(dataset_image(path))
+    image = cv2.imread(file, cv2.IMREAD_GRAYSCALE)
     if image is None:
-        raise ValueError(f"cannot read the texture image {path!r}")
+        raise ValueError(f"cannot read the texture image {file!r}")
     return image.astype(np.float32)
 
 

@@ -15,6 +15,7 @@ import pytest
 from ddvs_service.camera import Intrinsics
 from ddvs_service.cli import main
 from ddvs_service.control.law import ControlConfig, ControlLaw
+from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general import (
     FLAG_LOST,
@@ -35,7 +36,7 @@ from sim.surfaces import Plane, paper_saddle
 INTR = Intrinsics.centred(500.0, 550, 418)
 ROI = (175, 134, 200, 150)  # 200×150, centred on the principal point (the control point)
 CONTROL_POINT = (INTR.cx, INTR.cy)
-PHOTO = "/work/shared/datasets/oxford/graf/img1.png"
+PHOTO = str(dataset_image("oxford/graf/img1.png"))
 
 
 @cache

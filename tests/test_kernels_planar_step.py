@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from ddvs_service.datasets import dataset_image
 from kernels.backend import init
 from kernels.planar_step import (
     N_STATS,
@@ -34,7 +35,7 @@ from benchmarks.numpy_iteration import bilinear, numpy_step
 
 init()
 IMG = cv2.GaussianBlur(
-    cv2.imread("/work/shared/datasets/oxford/boat/img1.png", cv2.IMREAD_GRAYSCALE).astype(np.float32), (0, 0), 1.0
+    cv2.imread(str(dataset_image("oxford/boat/img1.png")), cv2.IMREAD_GRAYSCALE).astype(np.float32), (0, 0), 1.0
 )
 G_TEST = np.array([[1.01, 0.02, 3.3], [-0.015, 0.99, -2.7], [1e-5, -2e-5, 1.0]])
 

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
+from ddvs_service.datasets import datasets_dir
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.planar import register, remaining_motion
 from ddvs_service.registration.tracker import Tracker
 
-DATA = Path("/work/shared/datasets/oxford")
+DATA = datasets_dir() / "oxford"
 ROI = (325, 265, 200, 150)  # central 200×150 of the 850×680 boat image
 
 

@@ -23,6 +23,7 @@ import pytest
 import zenoh
 from conftest import free_port
 
+from ddvs_service.datasets import dataset_image
 from ddvs_service.protocol import (
     Command,
     Keys,
@@ -38,7 +39,7 @@ from ddvs_service.protocol.ros import Header, Time
 from ddvs_service.service.config import ServiceConfig
 
 W, H, F = 320, 240, 420.0
-BOAT = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "oxford" / "boat" / "img1.png"
+BOAT = dataset_image("oxford/boat/img1.png")
 
 
 def scene() -> np.ndarray:

@@ -10,27 +10,26 @@ only reference/current mismatch is interpolation.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
+from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import so3_exp
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
-DATASETS = Path(os.environ.get("DDVS_DATASETS", Path(__file__).resolve().parents[3] / "shared" / "datasets"))
 TEXTURES = ("oxford/graf/img1.png", "oxford/boat/img1.png", "oxford/wall/img1.png", "ef/notredame/img1.png")
 
 
 def load_texture(name: str, blur_sigma: float = 1.0) -> F32:
-    """Grey texture (float32, 0–255) from `DATASETS/name`, blurred by `blur_sigma` texels to limit aliasing."""
-    path = DATASETS / name
+    """Grey texture (float32, 0–255) of the datasets folder (`ddvs_service.datasets`), e.g. "oxford/boat/img1.png",
+    blurred by `blur_sigma` texels to limit aliasing."""
+    path = dataset_image(name)
     image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise FileNotFoundError(f"texture {path} could not be read; expected a grey/colour image file there")
