@@ -41,7 +41,7 @@ from kernels.planar_step import (
 )
 from kernels.planar_step import PARAMS_GAINS as PLANAR_GAINS
 from kernels.planar_step import PARAMS_SPAN as PLANAR_SPAN
-from kernels.sampling import homography_apply
+from kernels.sampling import homography_apply, load_vector
 
 MAX_MONOMIALS = 16  # degree ≤ 3 per axis: x^i y^j, 0 ≤ i, j ≤ 3
 
@@ -170,6 +170,9 @@ def general_step(
     beta = params[PARAMS_BETA]
     sigma = params[PARAMS_SIGMA]
     kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
+    G = load_vector(params, PARAMS_G, 9)
+    span = load_vector(params, PARAMS_SPAN, 4)
+    gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
     hr = ref.shape[0]
     wr = ref.shape[1]
     for it in range(nb * 512):  # one band per 512-iteration block (PLATFORM-NOTES)
@@ -205,7 +208,7 @@ def general_step(
                                 rho_y += a * j * xp[i] * yp[j - 1]
                     rho_u = rho_x / bs
                     rho_v = rho_y / bs
-                    X, Y, Z = homography_apply(params, PARAMS_G, ti.cast(u, ti.f32), ti.cast(v, ti.f32))
+                    X, Y, Z = homography_apply(G, ti.cast(u, ti.f32), ti.cast(v, ti.f32))
                     X += rho * e0
                     Y += rho * e1
                     Z += rho * e2
@@ -216,7 +219,7 @@ def general_step(
                     c0, cgx, cgy, ok = cubic_sample(cur, x, y)
                     unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
                     if ok_z and unmasked and ok == 1:
-                        gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+                        gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
                         r = gain * c0 + beta - ir
                         # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
                         pxu = params[0] + rho_u * e0
@@ -326,10 +329,11 @@ def render_general(
         for i in ti.static(range(D1)):
             for j in ti.static(range(D1)):
                 rho += params[PARAMS_RHO + i * D1 + j] * xp[i] * yp[j]
-        X, Y, Z = homography_apply(params, PARAMS_G, u, v)
+        X, Y, Z = homography_apply(load_vector(params, PARAMS_G, 9), u, v)
         Z += rho * params[PARAMS_E + 2]
         iz = 1.0 / ti.select(Z > 1e-8, Z, 1.0)
         val, _gx, _gy, ok = cubic_sample(cur, (X + rho * params[PARAMS_E]) * iz, (Y + rho * params[PARAMS_E + 1]) * iz)
         ok = ok if Z > 1e-8 else 0
-        gain, _phi = gain_at(params, u, v, grid_rows, grid_cols)
+        gain, _phi = gain_at(load_vector(params, PARAMS_SPAN, 4),
+                             load_vector(params, PARAMS_GAINS, grid_rows * grid_cols), u, v, grid_rows, grid_cols)
         out[rr, cc] = gain * val + params[PARAMS_BETA] if ok == 1 else ti.math.nan

@@ -25,7 +25,7 @@ import warnings
 
 import taichi as ti
 
-from kernels.sampling import grid_coordinate, homography_apply, projected_sample, tent
+from kernels.sampling import grid_coordinate, homography_apply, load_vector, projected_sample, tent
 
 # The accumulators are unrolled on purpose (they live in registers); silence Taichi's compile-time-length warning.
 warnings.filterwarnings("ignore", message="You are unrolling more than", category=SyntaxWarning)
@@ -76,34 +76,32 @@ def work_size(n: int) -> int:
 
 @ti.func
 def robust_weight(r: ti.f32, sigma: ti.f32, kind: ti.i32) -> ti.f32:
-    """IRLS weight `w(r)` of the M-estimator `kind` (0 none, 1 Huber, 2 Tukey) with scale `sigma` (grey levels)."""
+    """IRLS weight `w(r)` of the M-estimator `kind` (0 none, 1 Huber, 2 Tukey) with scale `sigma` (grey levels).
+
+    Branch-free (selects only), so that a pixel loop calling it can be vectorised."""
     a = ti.abs(r)
-    w = 1.0
-    if kind == 1:
-        k = HUBER_K * sigma
-        if a > k:
-            w = k / a
-    elif kind == 2:
-        c = TUKEY_C * sigma
-        w = 0.0
-        if a < c:
-            t = 1.0 - (r / c) ** 2
-            w = t * t
-    return w
+    k = HUBER_K * sigma
+    huber = ti.select(a > k, k / ti.max(a, 1e-30), 1.0)
+    c = TUKEY_C * sigma
+    t = 1.0 - (r / c) ** 2
+    tukey = ti.select(a < c, t * t, 0.0)
+    return ti.select(kind == 1, huber, ti.select(kind == 2, tukey, 1.0))
 
 
 @ti.func
-def gain_at(params: ti.template(), u: ti.f32, v: ti.f32, grid_rows: ti.template(), grid_cols: ti.template()):
-    """Bilinear gain surface `S(u, v)` and the node weights `φ` (row-major vector of length R·C)."""
-    tc = grid_coordinate(u, params[PARAMS_SPAN + 0], params[PARAMS_SPAN + 2], grid_cols)
-    tr = grid_coordinate(v, params[PARAMS_SPAN + 1], params[PARAMS_SPAN + 3], grid_rows)
+def gain_at(span: ti.template(), gains: ti.template(), u: ti.f32, v: ti.f32, grid_rows: ti.template(),
+            grid_cols: ti.template()):
+    """Bilinear gain surface `S(u, v)` and the node weights `φ` (row-major vector of length R·C), from the node span
+    `params[PARAMS_SPAN:+4]` and the node values `params[PARAMS_GAINS:+R·C]` (both read with `load_vector`)."""
+    tc = grid_coordinate(u, span[0], span[2], grid_cols)
+    tr = grid_coordinate(v, span[1], span[3], grid_rows)
     phi = ti.Vector.zero(ti.f32, grid_rows * grid_cols)
     gain = 0.0
     for i in ti.static(range(grid_rows)):
         for j in ti.static(range(grid_cols)):
             f = tent(tr, i) * tent(tc, j)
             phi[i * grid_cols + j] = f
-            gain += f * params[PARAMS_GAINS + i * grid_cols + j]
+            gain += f * gains[i * grid_cols + j]
     return gain, phi
 
 
@@ -173,6 +171,42 @@ def row_sums(moments, cross, photo, gb, ge, stats, dv: ti.f32, s: ti.f32):
 
 
 @ti.func
+def pixel_terms(ref: ti.template(), warped: ti.template(), span: ti.template(), gains: ti.template(), v: ti.i32,
+                u: ti.i32, v0: ti.i32, u0: ti.i32, beta: ti.f32, grid_rows: ti.template(), grid_cols: ti.template()):
+    """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the pre-warped current image.
+
+    Returns `(ok, r, gx, gy, c0, φ)`: `ok` is false where a reference tap is masked or a warped tap is
+    `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads only, no
+    branches: the pixel loop that accumulates the normal equations stays vectorisable."""
+    hr = ref.shape[0]
+    wr = ref.shape[1]
+    ul = ti.max(u - 1, 0)
+    ur = ti.min(u + 1, wr - 1)
+    vu = ti.max(v - 1, 0)
+    vd = ti.min(v + 1, hr - 1)
+    ir = ref[v, u]
+    rl = ref[v, ul]
+    rr = ref[v, ur]
+    ru = ref[vu, u]
+    rd = ref[vd, u]
+    i = v - v0 + 1
+    j = u - u0 + 1
+    c0 = warped[i, j]
+    cl = warped[i, j - 1]
+    cr = warped[i, j + 1]
+    cu = warped[i - 1, j]
+    cd = warped[i + 1, j]
+    lowest_ref = ti.min(ti.min(ir, rl), ti.min(rr, ti.min(ru, rd)))
+    lowest_cur = ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd)))
+    ok = ti.min(lowest_ref, lowest_cur) > MASK_LIMIT
+    gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+    r = gain * c0 + beta - ir
+    gx = 0.5 * (gain * 0.5 * (cr - cl) + (rr - rl) / (ur - ul))
+    gy = 0.5 * (gain * 0.5 * (cd - cu) + (rd - ru) / (vd - vu))
+    return ok, ti.select(ok, r, 0.0), ti.select(ok, gx, 0.0), ti.select(ok, gy, 0.0), ti.select(ok, c0, 0.0), phi
+
+
+@ti.func
 def hist_bin(a: ti.f32) -> ti.i32:
     """Histogram bin of `a = |r| ≥ 0` read from its float32 bits (no logarithm): `HIST_SUB` linear bins per octave
     from `2^HIST_LOG2_MIN`; smaller values fall in bin 0, larger ones in the last bin."""
@@ -221,15 +255,15 @@ def planar_step(
     beta = params[PARAMS_BETA]
     sigma = params[PARAMS_SIGMA]
     kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
-    hr = ref.shape[0]
-    wr = ref.shape[1]
+    G = load_vector(params, PARAMS_G, 9)
+    span = load_vector(params, PARAMS_SPAN, 4)
+    gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
     # A CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
     for it in range(nb * 512):
         if it % 512 == 0:
             b = it // 512
             hoff = hist0 + b * HIST_BINS
-            for k in range(HIST_BINS):
-                work[hoff + k] = 0.0
+            hist = ti.Vector.zero(ti.f32, HIST_BINS)  # a local array: its stores alias no ndarray
             rows = v1 - v0 + 1
             first = v0 + b * rows // nb
             last = v0 + (b + 1) * rows // nb  # exclusive
@@ -237,73 +271,58 @@ def planar_step(
             # write the same values there): serial loops inside the band, no per-pixel task dispatch.
             for i in range(first - v0, last - v0 + 2):
                 for j in range(u1 - u0 + 3):
-                    x, y, z = homography_apply(params, PARAMS_G, ti.cast(u0 - 1 + j, ti.f32),
-                                               ti.cast(v0 - 1 + i, ti.f32))
+                    x, y, z = homography_apply(G, ti.cast(u0 - 1 + j, ti.f32), ti.cast(v0 - 1 + i, ti.f32))
                     val, ok = projected_sample(cur, x, y, z)
                     warped[i, j] = val if ok == 1 else OUTSIDE
             acc = ti.Vector.zero(ti.f32, NACC)
             for v in range(first, last):
-                dv = v - cy
                 moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
                 cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e b_q
                 photo = ti.Vector.zero(ti.f32, MT)  # upper triangle of Σ w E Eᵀ
                 gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
                 ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
                 stats = ti.Vector.zero(ti.f32, 3)
-                vu = ti.max(v - 1, 0)
-                vd = ti.min(v + 1, hr - 1)
-                i = v - v0 + 1
+                # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
                 for u in range(u0, u1 + 1):
-                    ul = ti.max(u - 1, 0)
-                    ur = ti.min(u + 1, wr - 1)
-                    ir = ref[v, u]
-                    gxr = (ref[v, ur] - ref[v, ul]) / (ur - ul)
-                    gyr = (ref[vd, u] - ref[vu, u]) / (vd - vu)
-                    j = u - u0 + 1
-                    c0 = warped[i, j]
-                    cl = warped[i, j - 1]
-                    cr = warped[i, j + 1]
-                    cu = warped[i - 1, j]
-                    cd = warped[i + 1, j]
-                    ok = ti.min(ti.min(c0, cl), ti.min(ti.min(cr, cu), cd)) > MASK_LIMIT
-                    unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
-                    if unmasked and ok:
-                        gain, phi = gain_at(params, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
-                        r = gain * c0 + beta - ir
-                        gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
-                        gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
-                        du = u - cx
-                        du2 = du * du
-                        w = robust_weight(r, sigma, kind)
-                        wxx = w * gx * gx
-                        wxy = w * gx * gy
-                        wyy = w * gy * gy
-                        du3 = du2 * du
-                        moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
-                                              wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
-                        basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
-                        E = ti.Vector.zero(ti.f32, M)
-                        for k in ti.static(range(M - 1)):
-                            E[k] = phi[k] * c0
-                        E[M - 1] = 1.0
-                        for e in ti.static(range(M)):
-                            we = w * E[e]
-                            for q in ti.static(range(5)):
-                                cross[e, q] += we * basis[q]
-                            for f in ti.static(range(e, M)):
-                                photo[ti.static(e * M - e * (e - 1) // 2 + f - e)] += we * E[f]
-                        w_r = w * r
-                        gb += w_r * basis
-                        ge += w_r * E
-                        stats[0] += 1.0
-                        if ti.abs(r) <= INLIER_C * sigma:
-                            stats[1] += 1.0
-                        stats[2] += r * r
-                        k_bin = hoff + hist_bin(ti.abs(r))
-                        work[k_bin] = work[k_bin] + 1.0  # band-owned: plain store, no atomic
-                acc += row_sums(moments, cross, photo, gb, ge, stats, dv, s)
+                    ok, r, gx, gy, c0, phi = pixel_terms(ref, warped, span, gains, v, u, v0, u0, beta, grid_rows,
+                                                         grid_cols)
+                    valid = ti.select(ok, 1.0, 0.0)
+                    w = valid * robust_weight(r, sigma, kind)
+                    du = u - cx
+                    du2 = du * du
+                    wxx = w * gx * gx
+                    wxy = w * gx * gy
+                    wyy = w * gy * gy
+                    du3 = du2 * du
+                    moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
+                                          wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
+                    basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
+                    E = ti.Vector.zero(ti.f32, M)
+                    for k in ti.static(range(M - 1)):
+                        E[k] = phi[k] * c0
+                    E[M - 1] = 1.0
+                    for e in ti.static(range(M)):
+                        we = w * E[e]
+                        for q in ti.static(range(5)):
+                            cross[e, q] += we * basis[q]
+                        for f in ti.static(range(e, M)):
+                            photo[ti.static(e * M - e * (e - 1) // 2 + f - e)] += we * E[f]
+                    w_r = w * r
+                    gb += w_r * basis
+                    ge += w_r * E
+                    inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
+                    stats += ti.Vector([valid, inlier, valid * r * r])
+                acc += row_sums(moments, cross, photo, gb, ge, stats, v - cy, s)
+                # The |r| histogram stores, so it gets its own (scalar) loop over the row.
+                for u in range(u0, u1 + 1):
+                    ok, r, _gx, _gy, _c0, _phi = pixel_terms(ref, warped, span, gains, v, u, v0, u0, beta,
+                                                             grid_rows, grid_cols)
+                    if ok:
+                        hist[hist_bin(ti.abs(r))] += 1.0
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
+            for k in range(HIST_BINS):
+                work[hoff + k] = hist[k]
     # Pass 3 (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
     ti.loop_config(serialize=True)
     for _ in range(1):
@@ -341,8 +360,9 @@ def render_compensated(
     for r, c in ti.ndrange(out.shape[0], out.shape[1]):
         u = ti.cast(u0 + c, ti.f32)
         v = ti.cast(v0 + r, ti.f32)
-        x, y, z = homography_apply(params, PARAMS_G, u, v)
+        x, y, z = homography_apply(load_vector(params, PARAMS_G, 9), u, v)
         val, ok = projected_sample(cur, x, y, z)
-        gain, _phi = gain_at(params, u, v, grid_rows, grid_cols)
+        gain, _phi = gain_at(load_vector(params, PARAMS_SPAN, 4),
+                             load_vector(params, PARAMS_GAINS, grid_rows * grid_cols), u, v, grid_rows, grid_cols)
         out[r, c] = gain * val + params[PARAMS_BETA] if ok == 1 else ti.math.nan
 

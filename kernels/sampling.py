@@ -10,11 +10,20 @@ import taichi as ti
 
 
 @ti.func
-def homography_apply(params: ti.template(), off: ti.i32, u: ti.f32, v: ti.f32):
-    """Homogeneous image `[x, y, z] = G · [u, v, 1]` of a pixel, `G` row-major at `params[off:off + 9]`."""
-    x = params[off + 0] * u + params[off + 1] * v + params[off + 2]
-    y = params[off + 3] * u + params[off + 4] * v + params[off + 5]
-    z = params[off + 6] * u + params[off + 7] * v + params[off + 8]
+def load_vector(params: ti.template(), off: ti.template(), n: ti.template()):
+    """`params[off:off + n]` as a local vector: read once before a pixel loop, the values stay in registers."""
+    out = ti.Vector.zero(ti.f32, n)
+    for k in ti.static(range(n)):
+        out[k] = params[off + k]
+    return out
+
+
+@ti.func
+def homography_apply(G: ti.template(), u: ti.f32, v: ti.f32):
+    """Homogeneous image `[x, y, z] = G · [u, v, 1]` of a pixel, `G` a row-major 9-vector (`load_vector`)."""
+    x = G[0] * u + G[1] * v + G[2]
+    y = G[3] * u + G[4] * v + G[5]
+    z = G[6] * u + G[7] * v + G[8]
     return x, y, z
 
 
