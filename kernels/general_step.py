@@ -16,10 +16,11 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
   - 3 epipole coordinates `e ← e + N⁻¹ δe'` (normalised units): `∂P = ρ N⁻¹ δe'`;
   - when `with_rho`: one per parallax basis function `φ_k = Σ_m B_km x^i y^j`: `∂P = φ_k e δc_k`;
   - gain nodes `φ_gain · I(w)` and the bias 1 (as `kernels.planar_step`);
-- reference pixels masked by the caller (`planar_step.MASKED`) are skipped, as are warps whose 4×4 taps leave the
-  image;
+- reference pixels masked by the caller (`planar_step.MASKED`) get weight 0, as do warps whose 4×4 taps leave the
+  image (branch-free: the accumulation loop has no store and no branch, so LLVM vectorises it);
 - robust weight and statistics exactly as `kernels.planar_step` (Huber/Tukey with a caller-given σ, valid and inlier
-  counts, Σ r², the histogram of |r| of `planar_step.hist_bin` whose median gives the next MAD scale).
+  counts, Σ r², the histogram of |r| of `planar_step.hist_bin` whose median gives the next MAD scale — here over
+  every other pixel of every other row, as re-sampling for the histogram's own loop is costly).
 
 Reduction as in PLATFORM-NOTES: each thread owns a band of rows, sums into registers, writes one partial; a serial
 pass adds the partials. One float32 parameter array in (`PARAMS_*`), one float32 work array out (`work_size`).
@@ -31,12 +32,12 @@ import taichi as ti
 from kernels.planar_step import (
     HIST_BINS,
     INLIER_C,
-    MASK_LIMIT,
     MAX_BANDS,
     N_STATS,
+    finish_sums,
     gain_at,
     hist_bin,
-    hist_value,
+    reference_taps,
     robust_weight,
 )
 from kernels.planar_step import PARAMS_GAINS as PLANAR_GAINS
@@ -107,30 +108,82 @@ def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32):
     """Keys bicubic sample of `img` at column `x`, row `y` and its exact gradient (grey levels per pixel).
 
     Returns `(value, d/dx, d/dy, ok)`; `ok = 0` (zeros) unless the 4×4 taps lie inside, i.e. `1 ≤ x, y` and
-    `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences)."""
+    `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences). Branch-free:
+    the taps are read at the clamped point (always in bounds) and the result is selected, so that a pixel loop
+    calling it can be vectorised."""
     h = img.shape[0]
     w = img.shape[1]
+    inside = x >= 1.0 and y >= 1.0 and x <= w - 2.0 and y <= h - 2.0
+    xc = ti.min(ti.max(x, 1.0), w - 2.0)
+    yc = ti.min(ti.max(y, 1.0), h - 2.0)
+    x0 = ti.max(ti.min(ti.cast(ti.floor(xc), ti.i32), w - 3), 1)  # integer clamp too: NaN casts stay in bounds
+    y0 = ti.max(ti.min(ti.cast(ti.floor(yc), ti.i32), h - 3), 1)
+    wx, dx = _keys(xc - x0)
+    wy, dy = _keys(yc - y0)
     val = 0.0
     gx = 0.0
     gy = 0.0
-    ok = 0
-    if x >= 1.0 and y >= 1.0 and x <= w - 2.0 and y <= h - 2.0:
-        x0 = ti.min(ti.cast(ti.floor(x), ti.i32), w - 3)
-        y0 = ti.min(ti.cast(ti.floor(y), ti.i32), h - 3)
-        wx, dx = _keys(x - x0)
-        wy, dy = _keys(y - y0)
-        for i in ti.static(range(4)):
-            row = 0.0
-            row_dx = 0.0
-            for j in ti.static(range(4)):
-                c = img[y0 - 1 + i, x0 - 1 + j]
-                row += wx[j] * c
-                row_dx += dx[j] * c
-            val += wy[i] * row
-            gx += wy[i] * row_dx
-            gy += dy[i] * row
-        ok = 1
-    return val, gx, gy, ok
+    for i in ti.static(range(4)):
+        row = 0.0
+        row_dx = 0.0
+        for j in ti.static(range(4)):
+            c = img[y0 - 1 + i, x0 - 1 + j]
+            row += wx[j] * c
+            row_dx += dx[j] * c
+        val += wy[i] * row
+        gx += wy[i] * row_dx
+        gy += dy[i] * row
+    return ti.select(inside, val, 0.0), ti.select(inside, gx, 0.0), ti.select(inside, gy, 0.0), ti.select(inside, 1, 0)
+
+
+@ti.func
+def parallax_at(rho_coeffs: ti.template(), xp: ti.template(), yp: ti.template(), degree: ti.template()):
+    """`ρ(p*) = Σ a_ij x^i y^j` and its derivatives along the normalised basis coordinates `x`, `y`."""
+    rho = 0.0
+    rho_x = 0.0
+    rho_y = 0.0
+    for i in ti.static(range(degree + 1)):
+        for j in ti.static(range(degree + 1)):
+            a = rho_coeffs[i * (degree + 1) + j]
+            rho += a * xp[i] * yp[j]
+            if ti.static(i > 0):
+                rho_x += a * i * xp[i - 1] * yp[j]
+            if ti.static(j > 0):
+                rho_y += a * j * xp[i] * yp[j - 1]
+    return rho, rho_x, rho_y
+
+
+@ti.func
+def warp_point(G: ti.template(), e: ti.template(), u: ti.i32, v: ti.i32, rho: ti.f32):
+    """`P = G p* + ρ e` dehomogenised: `(x, y, 1/Z, ok_z)`, `ok_z` false (and `1/Z` = 1) when `Z ≤ 1e-8`."""
+    X, Y, Z = homography_apply(G, ti.cast(u, ti.f32), ti.cast(v, ti.f32))
+    X += rho * e[0]
+    Y += rho * e[1]
+    Z += rho * e[2]
+    ok_z = Z > 1e-8
+    iz = 1.0 / ti.select(ok_z, Z, 1.0)
+    return X * iz, Y * iz, iz, ok_z
+
+
+@ti.func
+def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.template(), rho_coeffs: ti.template(),
+                span: ti.template(), gains: ti.template(), v: ti.i32, u: ti.i32, yp: ti.template(), bcx: ti.f32,
+                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_rows: ti.template(), grid_cols: ti.template()):
+    """Everything one reference pixel `(u, v)` contributes, before the Jacobian: `(ok, r, I(w), ∂I/∂x, ∂I/∂y, x, y,
+    1/Z, ρ, ∂ρ/∂u, ∂ρ/∂v, x-powers, ∂I*/∂u, ∂I*/∂v, S, φ)` (`yp`: powers of the row's basis coordinate).
+
+    `ok` is false where a reference tap is masked, `Z ≤ 1e-8` or the 4×4 taps leave `cur`; the image values and
+    gradients are then 0 (finite, so that a weight of 0 cancels them). Loads and selects only: vectorisable."""
+    ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
+    xp = _powers((u - bcx) / bs, degree)
+    rho, rho_x, rho_y = parallax_at(rho_coeffs, xp, yp, degree)
+    x, y, iz, ok_z = warp_point(G, e, u, v, rho)
+    c0, cgx, cgy, inside = cubic_sample(cur, x, y)
+    ok = ref_ok and ok_z and inside == 1
+    gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+    r = gain * c0 + beta - ir
+    return (ok, ti.select(ok, r, 0.0), ti.select(ok, c0, 0.0), ti.select(ok, cgx, 0.0), ti.select(ok, cgy, 0.0), x, y,
+            iz, rho, rho_x / bs, rho_y / bs, xp, ti.select(ok, gxr, 0.0), ti.select(ok, gyr, 0.0), gain, phi)
 
 
 @ti.kernel
@@ -164,144 +217,101 @@ def general_step(
     bcx = params[PARAMS_BNORM + 0]
     bcy = params[PARAMS_BNORM + 1]
     bs = params[PARAMS_BNORM + 2]
-    e0 = params[PARAMS_E + 0]
-    e1 = params[PARAMS_E + 1]
-    e2 = params[PARAMS_E + 2]
+    e = load_vector(params, PARAMS_E, 3)
+    rho_coeffs = load_vector(params, PARAMS_RHO, D1 * D1)
     beta = params[PARAMS_BETA]
     sigma = params[PARAMS_SIGMA]
     kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
     G = load_vector(params, PARAMS_G, 9)
     span = load_vector(params, PARAMS_SPAN, 4)
     gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
-    hr = ref.shape[0]
-    wr = ref.shape[1]
     for it in range(nb * 512):  # one band per 512-iteration block (PLATFORM-NOTES)
         if it % 512 == 0:
             b = it // 512
-            hoff = hist0 + b * HIST_BINS
-            for k in range(HIST_BINS):
-                work[hoff + k] = 0.0
+            hist = ti.Vector.zero(ti.f32, HIST_BINS)  # a local array: its stores alias no ndarray
             acc = ti.Vector.zero(ti.f32, NACC)
             rows = v1 - v0 + 1
-            for v in range(v0 + b * rows // nb, v0 + (b + 1) * rows // nb):
+            first = v0 + b * rows // nb
+            for v in range(first, v0 + (b + 1) * rows // nb):
                 racc = ti.Vector.zero(ti.f32, NACC)
-                vu = ti.max(v - 1, 0)
-                vd = ti.min(v + 1, hr - 1)
                 yp = _powers((v - bcy) / bs, degree)
+                # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
                 for u in range(u0, u1 + 1):
-                    ul = ti.max(u - 1, 0)
-                    ur = ti.min(u + 1, wr - 1)
-                    ir = ref[v, u]
-                    gxr = (ref[v, ur] - ref[v, ul]) / (ur - ul)
-                    gyr = (ref[vd, u] - ref[vu, u]) / (vd - vu)
-                    xp = _powers((u - bcx) / bs, degree)
-                    rho = 0.0
-                    rho_x = 0.0
-                    rho_y = 0.0
-                    for i in ti.static(range(D1)):
-                        for j in ti.static(range(D1)):
-                            a = params[PARAMS_RHO + i * D1 + j]
-                            rho += a * xp[i] * yp[j]
-                            if ti.static(i > 0):
-                                rho_x += a * i * xp[i - 1] * yp[j]
-                            if ti.static(j > 0):
-                                rho_y += a * j * xp[i] * yp[j - 1]
-                    rho_u = rho_x / bs
-                    rho_v = rho_y / bs
-                    X, Y, Z = homography_apply(G, ti.cast(u, ti.f32), ti.cast(v, ti.f32))
-                    X += rho * e0
-                    Y += rho * e1
-                    Z += rho * e2
-                    ok_z = Z > 1e-8
-                    iz = 1.0 / ti.select(ok_z, Z, 1.0)
-                    x = X * iz
-                    y = Y * iz
-                    c0, cgx, cgy, ok = cubic_sample(cur, x, y)
-                    unmasked = ir > MASK_LIMIT and ti.abs(gxr) < -MASK_LIMIT and ti.abs(gyr) < -MASK_LIMIT
-                    if ok_z and unmasked and ok == 1:
-                        gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
-                        r = gain * c0 + beta - ir
-                        # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
-                        pxu = params[0] + rho_u * e0
-                        pyu = params[3] + rho_u * e1
-                        pzu = params[6] + rho_u * e2
-                        pxv = params[1] + rho_v * e0
-                        pyv = params[4] + rho_v * e1
-                        pzv = params[7] + rho_v * e2
-                        a00 = (pxu - x * pzu) * iz
-                        a10 = (pyu - y * pzu) * iz
-                        a01 = (pxv - x * pzv) * iz
-                        a11 = (pyv - y * pzv) * iz
-                        det = a00 * a11 - a01 * a10
-                        gx = gain * cgx
-                        gy = gain * cgy
-                        if ti.abs(det) > 1e-12:
-                            gx = 0.5 * (gx + (gxr * a11 - gyr * a10) / det)
-                            gy = 0.5 * (gy + (gyr * a00 - gxr * a01) / det)
-                        du = x - cx  # = s · q_u in the current image
-                        dv = y - cy
-                        radial = (gx * du + gy * dv) / s
-                        J = ti.Vector.zero(ti.f32, P)
-                        J[0] = s * gx
-                        J[1] = s * gy
-                        J[2] = gy * du - gx * dv
-                        J[3] = gx * du - gy * dv
-                        J[4] = 3.0 * s * radial
-                        J[5] = gx * dv + gy * du
-                        J[6] = -du * radial
-                        J[7] = -dv * radial
-                        # ∂w = (∂X − x ∂Z, ∂Y − y ∂Z) / Z
-                        J[8] = rho * s * gx * iz
-                        J[9] = rho * s * gy * iz
-                        J[10] = -rho * (gx * du + gy * dv) * iz
-                        if ti.static(with_rho):
-                            ge = (gx * (e0 - x * e2) + gy * (e1 - y * e2)) * iz
-                            for k in ti.static(range(n_rho)):
-                                f = 0.0
-                                for i in ti.static(range(D1)):
-                                    for j in ti.static(range(D1)):
-                                        f += params[PARAMS_BASIS + k * MAX_MONOMIALS + i * D1 + j] * xp[i] * yp[j]
-                                J[N_GEOMETRIC + N_EPIPOLE + k] = f * ge
-                        for k in ti.static(range(NG)):
-                            J[N_GEOMETRIC + N_EPIPOLE + NR + k] = phi[k] * c0
-                        J[P - 1] = 1.0
-                        w = robust_weight(r, sigma, kind)
-                        idx = 0
-                        for i in ti.static(range(P)):
-                            wji = w * J[i]
-                            for j in ti.static(range(i, P)):
-                                racc[idx] += wji * J[j]
-                                idx += 1
-                            racc[NT + i] += wji * r
-                        racc[NT + P + 0] += 1.0
-                        if ti.abs(r) <= INLIER_C * sigma:
-                            racc[NT + P + 1] += 1.0
-                        racc[NT + P + 2] += r * r
-                        k_bin = hoff + hist_bin(ti.abs(r))
-                        work[k_bin] = work[k_bin] + 1.0  # band-owned: plain store, no atomic
+                    ok, r, c0, cgx, cgy, x, y, iz, rho, rho_u, rho_v, xp, gxr, gyr, gain, phi = pixel_terms(
+                        ref, cur, G, e, rho_coeffs, span, gains, v, u, yp, bcx, bs, beta, degree, grid_rows, grid_cols)
+                    # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
+                    pxu = G[0] + rho_u * e[0]
+                    pyu = G[3] + rho_u * e[1]
+                    pzu = G[6] + rho_u * e[2]
+                    pxv = G[1] + rho_v * e[0]
+                    pyv = G[4] + rho_v * e[1]
+                    pzv = G[7] + rho_v * e[2]
+                    a00 = (pxu - x * pzu) * iz
+                    a10 = (pyu - y * pzu) * iz
+                    a01 = (pxv - x * pzv) * iz
+                    a11 = (pyv - y * pzv) * iz
+                    det = a00 * a11 - a01 * a10
+                    invertible = ti.abs(det) > 1e-12
+                    idet = 1.0 / ti.select(invertible, det, 1.0)
+                    gx = gain * cgx
+                    gy = gain * cgy
+                    gx = ti.select(invertible, 0.5 * (gx + (gxr * a11 - gyr * a10) * idet), gx)
+                    gy = ti.select(invertible, 0.5 * (gy + (gyr * a00 - gxr * a01) * idet), gy)
+                    du = x - cx  # = s · q_u in the current image
+                    dv = y - cy
+                    radial = (gx * du + gy * dv) / s
+                    J = ti.Vector.zero(ti.f32, P)
+                    J[0] = s * gx
+                    J[1] = s * gy
+                    J[2] = gy * du - gx * dv
+                    J[3] = gx * du - gy * dv
+                    J[4] = 3.0 * s * radial
+                    J[5] = gx * dv + gy * du
+                    J[6] = -du * radial
+                    J[7] = -dv * radial
+                    # ∂w = (∂X − x ∂Z, ∂Y − y ∂Z) / Z
+                    J[8] = rho * s * gx * iz
+                    J[9] = rho * s * gy * iz
+                    J[10] = -rho * (gx * du + gy * dv) * iz
+                    if ti.static(with_rho):
+                        ge = (gx * (e[0] - x * e[2]) + gy * (e[1] - y * e[2])) * iz
+                        for k in ti.static(range(n_rho)):
+                            f = 0.0
+                            for i in ti.static(range(D1)):
+                                for j in ti.static(range(D1)):
+                                    f += params[PARAMS_BASIS + k * MAX_MONOMIALS + i * D1 + j] * xp[i] * yp[j]
+                            J[N_GEOMETRIC + N_EPIPOLE + k] = f * ge
+                    for k in ti.static(range(NG)):
+                        J[N_GEOMETRIC + N_EPIPOLE + NR + k] = phi[k] * c0
+                    J[P - 1] = 1.0
+                    valid = ti.select(ok, 1.0, 0.0)
+                    w = valid * robust_weight(r, sigma, kind)
+                    idx = 0
+                    for i in ti.static(range(P)):
+                        wji = w * J[i]
+                        for j in ti.static(range(i, P)):
+                            racc[idx] += wji * J[j]
+                            idx += 1
+                        racc[NT + i] += wji * r
+                    racc[NT + P + 0] += valid
+                    racc[NT + P + 1] += ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
+                    racc[NT + P + 2] += valid * r * r
                 acc += racc
+                # The |r| histogram stores, so it gets its own scalar loop, over every other pixel of every other
+                # row (a quarter of the ROI: re-sampling is the costly part, and the median needs no more).
+                if (v - first) % 2 == 0:
+                    for k in range((u1 - u0) // 2 + 1):
+                        terms = pixel_terms(ref, cur, G, e, rho_coeffs, span, gains, v, u0 + 2 * k, yp, bcx, bs, beta,
+                                            degree, grid_rows, grid_cols)
+                        ok = terms[0]
+                        r = terms[1]
+                        if ok:
+                            hist[hist_bin(ti.abs(r))] += 1.0
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        for k in range(NACC):
-            total = ti.cast(0.0, ti.f64)
-            for b in range(nb):
-                total += ti.cast(work[(1 + b) * NACC + k], ti.f64)
-            work[k] = ti.cast(total, ti.f32)
-        half = 0.5 * work[NT + P]
-        cum = 0.0
-        median = 0.0
-        found = 0
-        for k in range(HIST_BINS):
-            count = 0.0
-            for b in range(nb):
-                count += work[hist0 + b * HIST_BINS + k]
-            if found == 0 and count > 0.0 and cum + count >= half:
-                median = hist_value(k, (half - cum) / count)
-                found = 1
-            cum += count
-        work[NACC - 1] = median
+            for k in range(HIST_BINS):
+                work[hist0 + b * HIST_BINS + k] = hist[k]
+    finish_sums(work, NACC, nb)
 
 
 @ti.kernel

@@ -171,13 +171,9 @@ def row_sums(moments, cross, photo, gb, ge, stats, dv: ti.f32, s: ti.f32):
 
 
 @ti.func
-def pixel_terms(ref: ti.template(), warped: ti.template(), span: ti.template(), gains: ti.template(), v: ti.i32,
-                u: ti.i32, v0: ti.i32, u0: ti.i32, beta: ti.f32, grid_rows: ti.template(), grid_cols: ti.template()):
-    """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the pre-warped current image.
-
-    Returns `(ok, r, gx, gy, c0, φ)`: `ok` is false where a reference tap is masked or a warped tap is
-    `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads only, no
-    branches: the pixel loop that accumulates the normal equations stays vectorisable."""
+def reference_taps(ref: ti.template(), v: ti.i32, u: ti.i32):
+    """`I*(p*)` and its central differences `(∂u, ∂v)` at reference pixel `(u, v)` (one-sided at the image border);
+    `ok` is false when one of the five taps is masked (≤ `MASK_LIMIT`). Loads and selects only."""
     hr = ref.shape[0]
     wr = ref.shape[1]
     ul = ti.max(u - 1, 0)
@@ -189,6 +185,19 @@ def pixel_terms(ref: ti.template(), warped: ti.template(), span: ti.template(), 
     rr = ref[v, ur]
     ru = ref[vu, u]
     rd = ref[vd, u]
+    ok = ti.min(ti.min(ir, rl), ti.min(rr, ti.min(ru, rd))) > MASK_LIMIT
+    return ir, (rr - rl) / (ur - ul), (rd - ru) / (vd - vu), ok
+
+
+@ti.func
+def pixel_terms(ref: ti.template(), warped: ti.template(), span: ti.template(), gains: ti.template(), v: ti.i32,
+                u: ti.i32, v0: ti.i32, u0: ti.i32, beta: ti.f32, grid_rows: ti.template(), grid_cols: ti.template()):
+    """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the pre-warped current image.
+
+    Returns `(ok, r, gx, gy, c0, φ)`: `ok` is false where a reference tap is masked or a warped tap is
+    `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads only, no
+    branches: the pixel loop that accumulates the normal equations stays vectorisable."""
+    ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
     i = v - v0 + 1
     j = u - u0 + 1
     c0 = warped[i, j]
@@ -196,13 +205,11 @@ def pixel_terms(ref: ti.template(), warped: ti.template(), span: ti.template(), 
     cr = warped[i, j + 1]
     cu = warped[i - 1, j]
     cd = warped[i + 1, j]
-    lowest_ref = ti.min(ti.min(ir, rl), ti.min(rr, ti.min(ru, rd)))
-    lowest_cur = ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd)))
-    ok = ti.min(lowest_ref, lowest_cur) > MASK_LIMIT
+    ok = ref_ok and ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd))) > MASK_LIMIT
     gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
     r = gain * c0 + beta - ir
-    gx = 0.5 * (gain * 0.5 * (cr - cl) + (rr - rl) / (ur - ul))
-    gy = 0.5 * (gain * 0.5 * (cd - cu) + (rd - ru) / (vd - vu))
+    gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
+    gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
     return ok, ti.select(ok, r, 0.0), ti.select(ok, gx, 0.0), ti.select(ok, gy, 0.0), ti.select(ok, c0, 0.0), phi
 
 
@@ -220,6 +227,36 @@ def hist_value(k: ti.i32, frac: ti.f32) -> ti.f32:
     octave = k >> HIST_SUB_BITS
     sub = k & (HIST_SUB - 1)
     return 2.0 ** ti.cast(HIST_LOG2_MIN + octave, ti.f32) * (1.0 + (sub + frac) / HIST_SUB)
+
+
+@ti.func
+def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
+    """Serial tail of a step kernel: add the `nb` band partials (float64) into `work[:nacc]`, then write the median
+    of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`."""
+    hist0 = ti.static(nacc * (1 + MAX_BANDS))
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        for k in range(nacc):
+            total = ti.cast(0.0, ti.f64)
+            for b in range(nb):
+                total += ti.cast(work[(1 + b) * nacc + k], ti.f64)
+            work[k] = ti.cast(total, ti.f32)
+        counted = 0.0
+        for k in range(HIST_BINS * nb):
+            counted += work[hist0 + k]
+        half = 0.5 * counted
+        cum = 0.0
+        median = 0.0
+        found = 0
+        for k in range(HIST_BINS):
+            count = 0.0
+            for b in range(nb):
+                count += work[hist0 + b * HIST_BINS + k]
+            if found == 0 and count > 0.0 and cum + count >= half:
+                median = hist_value(k, (half - cum) / count)
+                found = 1
+            cum += count
+        work[nacc - 1] = median
 
 
 @ti.kernel
@@ -323,27 +360,7 @@ def planar_step(
                 work[(1 + b) * NACC + k] = acc[k]
             for k in range(HIST_BINS):
                 work[hoff + k] = hist[k]
-    # Pass 3 (serial, tiny): add the band partials in float64, then the median of |r| from the histograms.
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        for k in range(NACC):
-            total = ti.cast(0.0, ti.f64)
-            for b in range(nb):
-                total += ti.cast(work[(1 + b) * NACC + k], ti.f64)
-            work[k] = ti.cast(total, ti.f32)
-        half = 0.5 * work[NT + P]
-        cum = 0.0
-        median = 0.0
-        found = 0
-        for k in range(HIST_BINS):
-            count = 0.0
-            for b in range(nb):
-                count += work[hist0 + b * HIST_BINS + k]
-            if found == 0 and count > 0.0 and cum + count >= half:
-                median = hist_value(k, (half - cum) / count)
-                found = 1
-            cum += count
-        work[NACC - 1] = median
+    finish_sums(work, NACC, nb)
 
 
 @ti.kernel
