@@ -14,10 +14,12 @@ For every reference pixel `p*` of the region of interest (level pixels, `u` = co
   whose median gives the next MAD scale.
 
 Pixels whose reference value or reference neighbours are masked (set to `MASKED`, ≤ `MASK_LIMIT` after
-filtering) or whose five warped samples are not all inside the current image are excluded. Reductions follow
-PLATFORM-NOTES: each thread owns a band of rows, warps them, accumulates in registers row by row and writes one
-partial; a second serial pass adds the partials. Parameters come in one float32 array (`PARAMS_*` offsets) and
-every result goes to one float32 work array (`work_size`).
+filtering) or whose five warped samples are not all inside the current image get weight 0. Reductions follow
+PLATFORM-NOTES: each thread owns a band of rows, warps them into a thread-local rolling buffer, accumulates in
+registers row by row and writes one partial; a serial tail adds the partials. The warp and accumulation loops store
+only into thread-local arrays and have no data-dependent branch, so LLVM vectorises them (docs/ARCHITECTURE.md).
+Parameters come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array
+(`work_size`).
 """
 
 
@@ -190,30 +192,6 @@ def reference_taps(ref: ti.template(), v: ti.i32, u: ti.i32):
 
 
 @ti.func
-def pixel_terms(ref: ti.template(), warped: ti.template(), span: ti.template(), gains: ti.template(), v: ti.i32,
-                u: ti.i32, v0: ti.i32, u0: ti.i32, beta: ti.f32, grid_rows: ti.template(), grid_cols: ti.template()):
-    """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the pre-warped current image.
-
-    Returns `(ok, r, gx, gy, c0, φ)`: `ok` is false where a reference tap is masked or a warped tap is
-    `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads only, no
-    branches: the pixel loop that accumulates the normal equations stays vectorisable."""
-    ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
-    i = v - v0 + 1
-    j = u - u0 + 1
-    c0 = warped[i, j]
-    cl = warped[i, j - 1]
-    cr = warped[i, j + 1]
-    cu = warped[i - 1, j]
-    cd = warped[i + 1, j]
-    ok = ref_ok and ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd))) > MASK_LIMIT
-    gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
-    r = gain * c0 + beta - ir
-    gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
-    gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
-    return ok, ti.select(ok, r, 0.0), ti.select(ok, gx, 0.0), ti.select(ok, gy, 0.0), ti.select(ok, c0, 0.0), phi
-
-
-@ti.func
 def hist_bin(a: ti.f32) -> ti.i32:
     """Histogram bin of `a = |r| ≥ 0` read from its float32 bits (no logarithm): `HIST_SUB` linear bins per octave
     from `2^HIST_LOG2_MIN`; smaller values fall in bin 0, larger ones in the last bin."""
@@ -259,11 +237,50 @@ def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
         work[nacc - 1] = median
 
 
+TILE = 128  # columns per tile of the thread-local rolling buffer of warped rows
+TILE_STRIDE = TILE + 2
+
+
+@ti.func
+def warp_row(cur: ti.template(), G: ti.template(), buf: ti.template(), slot: ti.i32, v: ti.i32, ut0: ti.i32,
+             n: ti.i32):
+    """Warp `n` pixels of reference row `v` from column `ut0 − 1` into slot `slot` of the rolling buffer `buf`:
+    `I(w(G, p*))`, or `OUTSIDE` where the warp leaves `cur`. Stores go to a thread-local array only, so LLVM keeps
+    the ndarray pointers in registers and vectorises the loop (gathers for the bilinear taps)."""
+    for j in range(n):
+        x, y, z = homography_apply(G, ti.cast(ut0 - 1 + j, ti.f32), ti.cast(v, ti.f32))
+        val, ok = projected_sample(cur, x, y, z)
+        buf[slot * TILE_STRIDE + j] = ti.select(ok == 1, val, OUTSIDE)
+
+
+@ti.func
+def pixel_terms(ref: ti.template(), buf: ti.template(), span: ti.template(), gains: ti.template(), v: ti.i32,
+                u: ti.i32, su: ti.i32, sc: ti.i32, sd: ti.i32, beta: ti.f32, grid_rows: ti.template(),
+                grid_cols: ti.template()):
+    """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the rolling buffer of warped
+    rows (`buf[sc + u]` is the warped sample at `(u, v)`, `su`/`sd` the rows above/below).
+
+    Returns `(ok, r, gx, gy, c0, φ)`: `ok` is false where a reference tap is masked or a warped tap is
+    `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads only, no
+    branches: the pixel loop that accumulates the normal equations stays vectorisable."""
+    ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
+    c0 = buf[sc + u]
+    cl = buf[sc + u - 1]
+    cr = buf[sc + u + 1]
+    cu = buf[su + u]
+    cd = buf[sd + u]
+    ok = ref_ok and ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd))) > MASK_LIMIT
+    gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+    r = gain * c0 + beta - ir
+    gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
+    gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
+    return ok, ti.select(ok, r, 0.0), ti.select(ok, gx, 0.0), ti.select(ok, gy, 0.0), ti.select(ok, c0, 0.0), phi
+
+
 @ti.kernel
 def planar_step(
     ref: ti.types.ndarray(dtype=ti.f32, ndim=2),
     cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    warped: ti.types.ndarray(dtype=ti.f32, ndim=2),
     params: ti.types.ndarray(dtype=ti.f32, ndim=1),
     work: ti.types.ndarray(dtype=ti.f32, ndim=1),
     grid_rows: ti.template(),
@@ -271,9 +288,9 @@ def planar_step(
 ):
     """Evaluate residuals, robust weights and normal equations at the parameters in `params` (module docstring).
 
-    `warped` is scratch of shape `(v1 − v0 + 3, u1 − u0 + 3)`: each band first warps the current image over its
-    rows of the ROI grown by one pixel on each side (`OUTSIDE` where the warp leaves `cur`), so that the five warped
-    samples of a pixel's ESM gradient are read, not re-interpolated.
+    Each band walks its rows in column tiles of `TILE` pixels, warping the current image one row ahead into a
+    thread-local rolling buffer of three rows (the ROI grown by one pixel on each side, `OUTSIDE` where the warp
+    leaves `cur`), so that the five warped samples of a pixel's ESM gradient are read, not re-interpolated.
     """
     M = ti.static(grid_rows * grid_cols + 1)
     MT = ti.static(M * (M + 1) // 2)
@@ -304,58 +321,61 @@ def planar_step(
             rows = v1 - v0 + 1
             first = v0 + b * rows // nb
             last = v0 + (b + 1) * rows // nb  # exclusive
-            # The band's rows of the warped current image, with one halo row on each side (neighbouring bands
-            # write the same values there): serial loops inside the band, no per-pixel task dispatch.
-            for i in range(first - v0, last - v0 + 2):
-                for j in range(u1 - u0 + 3):
-                    x, y, z = homography_apply(G, ti.cast(u0 - 1 + j, ti.f32), ti.cast(v0 - 1 + i, ti.f32))
-                    val, ok = projected_sample(cur, x, y, z)
-                    warped[i, j] = val if ok == 1 else OUTSIDE
             acc = ti.Vector.zero(ti.f32, NACC)
-            for v in range(first, last):
-                moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
-                cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e b_q
-                photo = ti.Vector.zero(ti.f32, MT)  # upper triangle of Σ w E Eᵀ
-                gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
-                ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
-                stats = ti.Vector.zero(ti.f32, 3)
-                # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
-                for u in range(u0, u1 + 1):
-                    ok, r, gx, gy, c0, phi = pixel_terms(ref, warped, span, gains, v, u, v0, u0, beta, grid_rows,
-                                                         grid_cols)
-                    valid = ti.select(ok, 1.0, 0.0)
-                    w = valid * robust_weight(r, sigma, kind)
-                    du = u - cx
-                    du2 = du * du
-                    wxx = w * gx * gx
-                    wxy = w * gx * gy
-                    wyy = w * gy * gy
-                    du3 = du2 * du
-                    moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
-                                          wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
-                    basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
-                    E = ti.Vector.zero(ti.f32, M)
-                    for k in ti.static(range(M - 1)):
-                        E[k] = phi[k] * c0
-                    E[M - 1] = 1.0
-                    for e in ti.static(range(M)):
-                        we = w * E[e]
-                        for q in ti.static(range(5)):
-                            cross[e, q] += we * basis[q]
-                        for f in ti.static(range(e, M)):
-                            photo[ti.static(e * M - e * (e - 1) // 2 + f - e)] += we * E[f]
-                    w_r = w * r
-                    gb += w_r * basis
-                    ge += w_r * E
-                    inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
-                    stats += ti.Vector([valid, inlier, valid * r * r])
-                acc += row_sums(moments, cross, photo, gb, ge, stats, v - cy, s)
-                # The |r| histogram stores, so it gets its own (scalar) loop over the row.
-                for u in range(u0, u1 + 1):
-                    ok, r, _gx, _gy, _c0, _phi = pixel_terms(ref, warped, span, gains, v, u, v0, u0, beta,
-                                                             grid_rows, grid_cols)
-                    if ok:
-                        hist[hist_bin(ti.abs(r))] += 1.0
+            buf = ti.Vector.zero(ti.f32, 3 * TILE_STRIDE)  # rows v − 1, v, v + 1 of the warped current image
+            for tile in range((u1 - u0 + TILE) // TILE):
+                ut0 = u0 + tile * TILE
+                ut1 = ti.min(ut0 + TILE - 1, u1)
+                n = ut1 - ut0 + 3
+                # Warp row t into its slot; once rows v − 1, v, v + 1 are there, process row v = t − 1.
+                for t in range(first - 1, last + 1):
+                    warp_row(cur, G, buf, (t - first + 1) % 3, t, ut0, n)
+                    if t > first:
+                        v = t - 1
+                        su = ((v - first) % 3) * TILE_STRIDE - ut0 + 1
+                        sc = ((v - first + 1) % 3) * TILE_STRIDE - ut0 + 1
+                        sd = ((v - first + 2) % 3) * TILE_STRIDE - ut0 + 1
+                        moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
+                        cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e b_q
+                        photo = ti.Vector.zero(ti.f32, MT)  # upper triangle of Σ w E Eᵀ
+                        gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
+                        ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
+                        stats = ti.Vector.zero(ti.f32, 3)
+                        for u in range(ut0, ut1 + 1):
+                            ok, r, gx, gy, c0, phi = pixel_terms(ref, buf, span, gains, v, u, su, sc, sd, beta,
+                                                                     grid_rows, grid_cols)
+                            valid = ti.select(ok, 1.0, 0.0)
+                            w = valid * robust_weight(r, sigma, kind)
+                            du = u - cx
+                            du2 = du * du
+                            wxx = w * gx * gx
+                            wxy = w * gx * gy
+                            wyy = w * gy * gy
+                            du3 = du2 * du
+                            moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
+                                                  wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
+                            basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
+                            E = ti.Vector.zero(ti.f32, M)
+                            for k in ti.static(range(M - 1)):
+                                E[k] = phi[k] * c0
+                            E[M - 1] = 1.0
+                            for e in ti.static(range(M)):
+                                we = w * E[e]
+                                for q in ti.static(range(5)):
+                                    cross[e, q] += we * basis[q]
+                                for f in ti.static(range(e, M)):
+                                    photo[ti.static(e * M - e * (e - 1) // 2 + f - e)] += we * E[f]
+                            w_r = w * r
+                            gb += w_r * basis
+                            ge += w_r * E
+                            inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
+                            stats += ti.Vector([valid, inlier, valid * r * r])
+                        acc += row_sums(moments, cross, photo, gb, ge, stats, v - cy, s)
+                        for u in range(ut0, ut1 + 1):
+                            ok, r, _gx, _gy, _c0, _phi = pixel_terms(ref, buf, span, gains, v, u, su, sc, sd, beta,
+                                                                         grid_rows, grid_cols)
+                            if ok:
+                                hist[hist_bin(ti.abs(r))] += 1.0
             for k in ti.static(range(NACC)):
                 work[(1 + b) * NACC + k] = acc[k]
             for k in range(HIST_BINS):

@@ -29,31 +29,32 @@ def homography_apply(G: ti.template(), u: ti.f32, v: ti.f32):
 
 @ti.func
 def bilinear(img: ti.template(), x: ti.f32, y: ti.f32):
-    """Bilinear sample of `img` at column `x`, row `y`; returns `(value, ok)` with `ok = 0` outside (value 0)."""
+    """Bilinear sample of `img` at column `x`, row `y`; returns `(value, ok)` with `ok = 0` outside (value 0).
+
+    Branch-free: the four taps are read at the clamped point (always in bounds, NaN included) and the result is
+    selected, so that a pixel loop calling it can be vectorised."""
     h = img.shape[0]
     w = img.shape[1]
-    val = 0.0
-    ok = 0
-    if x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0:
-        x0 = ti.min(ti.cast(ti.floor(x), ti.i32), w - 2)
-        y0 = ti.min(ti.cast(ti.floor(y), ti.i32), h - 2)
-        ax = x - x0
-        ay = y - y0
-        top = (1.0 - ax) * img[y0, x0] + ax * img[y0, x0 + 1]
-        bottom = (1.0 - ax) * img[y0 + 1, x0] + ax * img[y0 + 1, x0 + 1]
-        val = (1.0 - ay) * top + ay * bottom
-        ok = 1
-    return val, ok
+    inside = x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0
+    xc = ti.min(ti.max(x, 0.0), w - 1.0)
+    yc = ti.min(ti.max(y, 0.0), h - 1.0)
+    x0 = ti.max(ti.min(ti.cast(xc, ti.i32), w - 2), 0)  # xc ≥ 0: truncation is the floor
+    y0 = ti.max(ti.min(ti.cast(yc, ti.i32), h - 2), 0)
+    ax = xc - x0
+    ay = yc - y0
+    top = (1.0 - ax) * img[y0, x0] + ax * img[y0, x0 + 1]
+    bottom = (1.0 - ax) * img[y0 + 1, x0] + ax * img[y0 + 1, x0 + 1]
+    return ti.select(inside, (1.0 - ay) * top + ay * bottom, 0.0), ti.select(inside, 1, 0)
 
 
 @ti.func
 def projected_sample(img: ti.template(), x: ti.f32, y: ti.f32, z: ti.f32):
-    """Bilinear sample at the dehomogenised point `(x / z, y / z)`; invalid when `z ≤ 1e-8` or outside the image."""
-    val = 0.0
-    ok = 0
-    if z > 1e-8:
-        val, ok = bilinear(img, x / z, y / z)
-    return val, ok
+    """Bilinear sample at the dehomogenised point `(x / z, y / z)`; invalid when `z ≤ 1e-8` or outside the image.
+    Branch-free, as `bilinear`."""
+    ok_z = z > 1e-8
+    iz = 1.0 / ti.select(ok_z, z, 1.0)
+    val, ok = bilinear(img, x * iz, y * iz)
+    return ti.select(ok_z, val, 0.0), ti.select(ok_z, ok, 0)
 
 
 @ti.func

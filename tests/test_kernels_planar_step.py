@@ -59,9 +59,7 @@ def make_params(grid, robust=1, sigma=4.0, gains=None, beta=5.0, bands=8):
 def run_kernel(ref, cur, params, grid):
     n = n_params(*grid)
     work = np.zeros(work_size(n), dtype=np.float32)
-    u0, v0, u1, v1 = (int(x) for x in params[PARAMS_ROI : PARAMS_ROI + 4])
-    warped = np.empty((v1 - v0 + 3, u1 - u0 + 3), dtype=np.float32)
-    planar_step(ref, cur, warped, params, work, grid[0], grid[1])
+    planar_step(ref, cur, params, work, grid[0], grid[1])
     acc = work[: n_acc(n)].astype(np.float64)
     nt = n * (n + 1) // 2
     H = np.zeros((n, n))

@@ -49,7 +49,7 @@ SIMILARITY = (0, 1, 2, 4)  # sl(3) coordinates of translation, rotation and isot
 @dataclass(frozen=True)
 class _Level:
     """Fixed geometry of one pyramid level: ROI bounds (inclusive), gain-grid span, normalisation `N` (level pixels →
-    `q = (p − c) / s`), `D` (full-resolution → level pixels), ROI corners, and the kernel's warped-current scratch."""
+    `q = (p − c) / s`), `D` (full-resolution → level pixels), ROI corners."""
 
     index: int
     bounds: tuple[int, int, int, int]
@@ -61,7 +61,6 @@ class _Level:
     N: F64
     N_inv: F64
     corners: F64  # homogeneous ROI corners (3×4), level pixels
-    warped: F32
 
     @property
     def size(self) -> float:
@@ -174,7 +173,6 @@ class PlanarRegistration:
                     N=N,
                     N_inv=np.linalg.inv(N),
                     corners=np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]]),
-                    warped=np.empty((v1 - v0 + 3, u1 - u0 + 3), dtype=np.float32),
                 )
             )
         return levels
@@ -299,7 +297,7 @@ class PlanarRegistration:
         steps: list[float] = []
         for it in range(1, cfg.max_iterations + 1):
             self._fill_state(G_l, state)
-            planar_step(ref, cur, level.warped, self._params, self._work, self.grid[0], self.grid[1])
+            planar_step(ref, cur, self._params, self._work, self.grid[0], self.grid[1])
             acc = self._work[: self._nacc].astype(np.float64)
             n_valid, n_inliers, sum_r2, median = acc[nt + n :]
             valid_ratio = n_valid / level.n_pixels
