@@ -185,12 +185,14 @@ class PlanarRegistration:
         beta0: float = 0.0,
         scale0: float | None = None,
         first_level: int | None = None,
+        tolerance_px: float | None = None,
     ) -> RegistrationResult:
         """Register `current` starting from `G0` (any scale, positive determinant; identity by default), gains and
         bias (eq. (4)) and robust scale σ (grey levels; `None`: estimated from a first least-squares evaluation).
 
         `first_level`: the coarsest pyramid level to solve (0 = full resolution only); the coarsest available by
-        default. A warm start whose predicted motion is small starts finer and skips the coarse levels' cost."""
+        default. A warm start whose predicted motion is small starts finer and skips the coarse levels' cost.
+        `tolerance_px`: convergence tolerance at full resolution (`config.step_tolerance_px` by default)."""
         cur = checked_grey(current, "current")
         if cur.shape != self.shape:
             raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
@@ -204,7 +206,8 @@ class PlanarRegistration:
         converged, reason = False, ""
         for level in reversed(levels):
             ref_l, cur_l = self.reference[level.index], pyramid[level.index]
-            tolerance = self.config.step_tolerance_px if level.index == 0 else self.config.coarse_step_tolerance_px
+            fine = self.config.step_tolerance_px if tolerance_px is None else tolerance_px
+            tolerance = fine if level.index == 0 else self.config.coarse_step_tolerance_px
             count = 0
             if level is levels[-1] and G0 is None:
                 # Cold start: match the photometric moments, then settle the similarity part with the photometric

@@ -52,11 +52,13 @@ class Tracker:
         """Register `current` from the last good state; on failure keep the state and report why."""
         try:
             start = self._prediction()
+            config = self._problem.config
+            tolerance = config.tracking_step_tolerance_px
             result = self._problem.run(current, G0=start, gains0=self._gains, beta0=self._beta, scale0=self._scale,
-                                       first_level=self._problem.config.tracking_levels - 1)
+                                       first_level=config.tracking_levels - 1, tolerance_px=tolerance)
             if not result.converged and (start is not self._G or len(result.iterations) < len(self._problem.levels)):
                 result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta,
-                                           scale0=self._scale)
+                                           scale0=self._scale, tolerance_px=tolerance)
         except Exception as exc:  # the tracker's contract: report, never raise
             return self._failure(f"error: {type(exc).__name__}: {exc}")
         if not np.all(np.isfinite(result.G)):
