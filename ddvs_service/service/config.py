@@ -51,6 +51,7 @@ class RegistrationSettings(_Strict):
     gain_grid: tuple[int, int] = (1, 1)
     robust: Literal["huber", "tukey", "none"] = "huber"
     min_inlier_ratio: float = 0.5
+    tracking_step_tolerance_px: float = Field(default=1e-2, gt=0)
     global_init: bool = True
     feature_source: Literal["none", "orb", "akaze"] = "none"
 
@@ -61,6 +62,7 @@ class RegistrationSettings(_Strict):
             gain_grid=self.gain_grid,
             robust=self.robust,
             min_inlier_ratio=self.min_inlier_ratio,
+            tracking_step_tolerance_px=self.tracking_step_tolerance_px,
         )
 
 
