@@ -39,6 +39,7 @@ from kernels.planar_step import (
     hist_bin,
     reference_taps,
     robust_weight,
+    store_band,
 )
 from kernels.planar_step import PARAMS_GAINS as PLANAR_GAINS
 from kernels.planar_step import PARAMS_SPAN as PLANAR_SPAN
@@ -205,7 +206,6 @@ def general_step(
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
     D1 = ti.static(degree + 1)
-    hist0 = ti.static(NACC * (1 + MAX_BANDS))
     nb = ti.cast(params[PARAMS_BANDS], ti.i32)
     u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
     v0 = ti.cast(params[PARAMS_ROI + 1], ti.i32)
@@ -307,10 +307,7 @@ def general_step(
                         r = terms[1]
                         if ok:
                             hist[hist_bin(ti.abs(r))] += 1.0
-            for k in ti.static(range(NACC)):
-                work[(1 + b) * NACC + k] = acc[k]
-            for k in range(HIST_BINS):
-                work[hist0 + b * HIST_BINS + k] = hist[k]
+            store_band(work, acc, hist, b)
     finish_sums(work, NACC, nb)
 
 

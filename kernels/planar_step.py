@@ -208,6 +208,16 @@ def hist_value(k: ti.i32, frac: ti.f32) -> ti.f32:
 
 
 @ti.func
+def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: ti.i32):
+    """Write band `b`'s partial sums `acc` and its |r| histogram `hist` to their places in `work` (`work_size`)."""
+    nacc = ti.static(acc.n)
+    for k in ti.static(range(nacc)):
+        work[(1 + b) * nacc + k] = acc[k]
+    for k in range(HIST_BINS):
+        work[nacc * (1 + MAX_BANDS) + b * HIST_BINS + k] = hist[k]
+
+
+@ti.func
 def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
     """Serial tail of a step kernel: add the `nb` band partials (float64) into `work[:nacc]`, then write the median
     of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`."""
@@ -297,7 +307,6 @@ def planar_step(
     P = ti.static(N_GEOMETRIC + M)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
-    hist0 = ti.static(NACC * (1 + MAX_BANDS))
     nb = ti.cast(params[PARAMS_BANDS], ti.i32)
     u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
     v0 = ti.cast(params[PARAMS_ROI + 1], ti.i32)
@@ -316,7 +325,6 @@ def planar_step(
     for it in range(nb * 512):
         if it % 512 == 0:
             b = it // 512
-            hoff = hist0 + b * HIST_BINS
             hist = ti.Vector.zero(ti.f32, HIST_BINS)  # a local array: its stores alias no ndarray
             rows = v1 - v0 + 1
             first = v0 + b * rows // nb
@@ -376,10 +384,7 @@ def planar_step(
                                                                          grid_rows, grid_cols)
                             if ok:
                                 hist[hist_bin(ti.abs(r))] += 1.0
-            for k in ti.static(range(NACC)):
-                work[(1 + b) * NACC + k] = acc[k]
-            for k in range(HIST_BINS):
-                work[hoff + k] = hist[k]
+            store_band(work, acc, hist, b)
     finish_sums(work, NACC, nb)
 
 
