@@ -47,6 +47,14 @@ def test_config_values_are_validated():
         RegistrationConfig(robust="cauchy")  # type: ignore[arg-type]
 
 
+def test_small_levels_use_fewer_bands_never_more_than_configured():
+    config = RegistrationConfig(bands=8)
+    assert config.bands_for(35 * 35) == 1
+    assert config.bands_for(200 * 150) == 2
+    assert config.bands_for(640 * 480) == 8
+    assert RegistrationConfig(bands=3).bands_for(640 * 480) == 3
+
+
 def test_textureless_is_not_converged():
     flat = np.full_like(IMG, 128.0)
     result = register(flat, flat, roi=ROI)

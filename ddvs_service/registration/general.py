@@ -306,7 +306,7 @@ class GeneralRegistration:
         p[k.PARAMS_BETA] = state.beta
         p[k.PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
         p[k.PARAMS_ROBUST] = 0 if state.scale is None else ROBUST_CODES[self.config.base.robust]
-        p[k.PARAMS_BANDS] = self.config.base.bands
+        p[k.PARAMS_BANDS] = self.config.base.bands_for(level.n_pixels)
         p[k.PARAMS_GAINS : k.PARAMS_GAINS + state.gains.size] = state.gains.reshape(-1)
         n_mono = (self.basis.degree + 1) ** 2
         p[k.PARAMS_RHO : k.PARAMS_RHO + n_mono] = self.basis.monomial_coefficients(state.c)

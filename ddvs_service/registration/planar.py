@@ -242,7 +242,7 @@ class PlanarRegistration:
         p[PARAMS_NORM : PARAMS_NORM + 3] = level.norm
         p[PARAMS_ROI : PARAMS_ROI + 4] = level.bounds
         p[PARAMS_SPAN : PARAMS_SPAN + 4] = level.span
-        p[PARAMS_BANDS] = self.config.bands
+        p[PARAMS_BANDS] = self.config.bands_for(level.n_pixels)
 
     def _fill_state(self, G_l: F64, state: _State) -> None:
         """The parameters that change every iteration: `G` (level pixels), bias, robust scale and loss, gains."""
