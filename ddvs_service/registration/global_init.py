@@ -1,7 +1,9 @@
 """Global initialisation and re-acquisition from large displacements (issue 9).
 
 `GlobalInitializer.initialize(reference, roi, current)`, stage by stage (1. log-polar peaks and the feature
-hypothesis; 2. the uniform rotation/scale grid, searched only when stage 1 gave no clear winner):
+hypothesis; 2. the uniform rotation/scale grid, searched only when stage 1 gave no clear winner; 3. foreshortened
+variants of the best screened warps — an oblique view compresses the ROI along one direction, which no similarity
+start reproduces — searched only when stages 1–2 ended LOST, and its winner held to the stricter `tilt_max_cost`):
 1. hypotheses: direct Fourier–Mellin search on a coarse pyramid level (`global_fourier_mellin.py`: any in-plane
    rotation, scale 0.6–1.6, ROI anywhere with part of it outside the image), plus, when `config.feature_source` is
    'orb' or 'akaze', one RANSAC homography from features (`global_features.py`); ranked by the robust photometric
@@ -47,6 +49,7 @@ F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
 T = TypeVar("T")
+FORESHORTENED = "foreshortened"  # source of the stage-3 starts
 
 
 @dataclass(frozen=True)
@@ -121,6 +124,9 @@ class GlobalInitConfig:
     min_margin: float = 0.1  # a good different solution's cost minus the winner's below this → LOST
     min_visible: float = 0.5  # winner's visible ROI fraction below this → LOST
     early_accept_cost: float = 0.1  # an OK winner of the first stage with a visible cost below this ends the search
+    tilt_seeds: int = 3  # stage 3: best distinct screened warps that seed foreshortened starts (0: no stage 3)
+    tilt_factor: float = 0.75  # stage 3: compression (≈ cos 41°) of the ROI along 0°, 45°, 90°, 135° about its centre
+    tilt_max_cost: float = 0.15  # max_cost for a winner started from stage 3 (more freedom, more chance fits)
 
 
 @dataclass(frozen=True)
@@ -221,8 +227,16 @@ class GlobalInitializer:
         screened: list[tuple[float, F64, Hypothesis]] = []  # (screened cost, screened G, start)
         refined: dict[int, list[Candidate]] = {}  # by position in `screened`
         n_raw = 0
-        for stage in rotation_scale_stages(search, fm):
-            raw = sorted(translation_hypotheses(search, translation, stage, fm) + extra, key=lambda h: h.score.cost)
+        stages: list[Callable[[], list[Hypothesis]]] = [
+            lambda s=stage: translation_hypotheses(search, translation, s, fm)
+            for stage in rotation_scale_stages(search, fm)
+        ]
+        stages.append(lambda: foreshortened(search, roi, [(c, G) for c, G, _ in screened], cfg))
+        result = InitResult("LOST", None, 1.0, 0.0, "no stage ran", [], 0)
+        for index, stage_hypotheses in enumerate(stages):
+            if index == len(stages) - 1 and (result.status == "OK" or cfg.tilt_seeds == 0):
+                break  # stage 3 only rescues a search that stages 1–2 lost
+            raw = sorted(stage_hypotheses() + extra, key=lambda h: h.score.cost)
             extra, n_raw = [], n_raw + len(raw)
             seen = [G for _, G, _ in screened]
             fresh = [hyp for hyp in raw if all(warp_rms(hyp.G, G, roi) > cfg.distinct_px for G in seen)]
@@ -243,6 +257,27 @@ class GlobalInitializer:
             if result.status == "OK" and result.cost <= cfg.early_accept_cost:
                 break
         return result
+
+
+def foreshortened(search: SearchPair, roi: Roi, screened: list[tuple[float, F64]], cfg: GlobalInitConfig
+                  ) -> list[Hypothesis]:
+    """Stage 3 starts: each of the `cfg.tilt_seeds` best distinct `screened` warps (ranking key, full-resolution G)
+    composed with a compression by `cfg.tilt_factor` of the reference ROI along 0°, 45°, 90° and 135° about its
+    centre (`G · C A C⁻¹`; a stretch is a compression across plus a scale, which the refinement absorbs)."""
+    x, y, w, h = roi
+    C = np.array([[1.0, 0.0, x + (w - 1) / 2], [0.0, 1.0, y + (h - 1) / 2], [0.0, 0.0, 1.0]])
+    order = sorted(screened, key=lambda item: item[0])
+    seeds = _distinct([(G, G) for _, G in order], cfg.tilt_seeds, roi, cfg.distinct_px)
+    starts = []
+    for G in seeds:
+        for phi in np.radians([0.0, 45.0, 90.0, 135.0]):
+            d = np.array([np.cos(phi), np.sin(phi)])
+            A = np.eye(3)
+            A[:2, :2] -= (1.0 - cfg.tilt_factor) * np.outer(d, d)
+            start = G @ C @ A @ np.linalg.inv(C)
+            starts.append(start / np.cbrt(np.linalg.det(start)))
+    return [Hypothesis(G=G, source=FORESHORTENED, score=score) for G, score in zip(starts, search.scores(starts),
+                                                                                     strict=True)]
 
 
 def _rank(score: PhotometricScore, cfg: GlobalInitConfig) -> float:
@@ -274,8 +309,9 @@ def _decide(candidates: list[Candidate], quality: float, n_raw: int, roi: Roi, c
                   and warp_rms(c.refinement.G, best.refinement.G, roi) > cfg.distinct_px), None)
     margin = (rival.score.cost_visible if rival else 1.0) - best.score.cost_visible
     cost = quality
-    if cost > cfg.max_cost:
-        reason = f"best robust cost {cost:.3f} (visible pixels, search level) above the threshold {cfg.max_cost}"
+    max_cost = cfg.tilt_max_cost if best.source == FORESHORTENED else cfg.max_cost
+    if cost > max_cost:
+        reason = f"best robust cost {cost:.3f} (visible pixels, search level) above the threshold {max_cost}"
     elif best.score.visible < cfg.min_visible:
         reason = f"only {best.score.visible:.0%} of the ROI visible (need {cfg.min_visible:.0%})"
     elif margin < cfg.min_margin:
