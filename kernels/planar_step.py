@@ -349,9 +349,10 @@ def planar_step(
                         gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
                         ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
                         stats = ti.Vector.zero(ti.f32, 3)
+                        # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
                         for u in range(ut0, ut1 + 1):
                             ok, r, gx, gy, c0, phi = pixel_terms(ref, buf, span, gains, v, u, su, sc, sd, beta,
-                                                                     grid_rows, grid_cols)
+                                                                 grid_rows, grid_cols)
                             valid = ti.select(ok, 1.0, 0.0)
                             w = valid * robust_weight(r, sigma, kind)
                             du = u - cx
@@ -379,9 +380,10 @@ def planar_step(
                             inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
                             stats += ti.Vector([valid, inlier, valid * r * r])
                         acc += row_sums(moments, cross, photo, gb, ge, stats, v - cy, s)
+                        # The |r| histogram stores (into a thread-local array), so it gets its own scalar loop.
                         for u in range(ut0, ut1 + 1):
                             ok, r, _gx, _gy, _c0, _phi = pixel_terms(ref, buf, span, gains, v, u, su, sc, sd, beta,
-                                                                         grid_rows, grid_cols)
+                                                                     grid_rows, grid_cols)
                             if ok:
                                 hist[hist_bin(ti.abs(r))] += 1.0
             store_band(work, acc, hist, b)
