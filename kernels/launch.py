@@ -1,0 +1,63 @@
+"""Prepared kernel launches: bind a Taichi kernel to fixed numpy buffers once, then relaunch it cheaply.
+
+A plain call of a `@ti.kernel` re-walks its arguments in Python on every launch (type checks, pointer extraction,
+a new launch context): on this project's 2-core machines ~0.23 ms of a 0.29 ms launch of a trivial kernel with
+four ndarray arguments, measured against 0.055 ms for a prepared relaunch (PLATFORM-NOTES: the launch cost grows
+with every ndarray argument). An iterative solver launches the same kernel on the same buffers many times with only
+their *contents* changing (parameters in, sums out), so `Prepared` builds the launch context once and replays it.
+
+Contract: the numpy arrays given to `Prepared` must stay C-contiguous, keep their shape and stay alive (the object
+holds references to them); their contents may change between launches, and the kernel sees the current contents.
+Template arguments are compile-time constants fixed at preparation. On a non-CPU backend external arrays are copied
+to and from the device by the regular launch path, so there `Prepared` falls back to a plain call per launch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import taichi as ti
+from taichi.lang import impl
+from taichi.types import template
+
+
+class Prepared:
+    """`kernel(*args)` bound once; `launch()` runs it again on the same buffers (module docstring)."""
+
+    def __init__(self, kernel: Callable[..., Any], *args: Any) -> None:
+        self._args = args  # keeps the buffers alive
+        self._plain = lambda: kernel(*args)
+        self._launch: Callable[[], None] = self._plain
+        if impl.current_cfg().arch != ti.cpu:
+            return
+        primal = kernel._primal  # type: ignore[attr-defined]  # taichi.lang.kernel_impl.Kernel
+        t_kernel = primal.compiled_kernels[primal.ensure_compiled(*args)]
+        context = t_kernel.make_launch_context()
+        slot = 0
+        for value, argument in zip(args, primal.arguments, strict=True):
+            annotation = argument.annotation
+            if isinstance(annotation, template):
+                continue
+            if isinstance(value, np.ndarray):
+                if not value.flags.c_contiguous:
+                    raise ValueError(f"argument {argument.name!r}: a prepared launch needs C-contiguous arrays")
+                context.set_arg_external_array_with_shape((slot,), int(value.ctypes.data), value.nbytes,
+                                                          value.shape, 0)
+            elif isinstance(value, bool | int | np.integer):
+                context.set_arg_int((slot,), int(value))
+            elif isinstance(value, float | np.floating):
+                context.set_arg_float((slot,), float(value))
+            else:
+                raise TypeError(f"argument {argument.name!r}: a prepared launch takes numpy arrays and scalars, "
+                                f"got {type(value).__name__}")
+            slot += 1
+        prog = impl.get_runtime().prog
+        compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+        self._context = context
+        self._launch = lambda: prog.launch_kernel(compiled, context)
+
+    def __call__(self) -> None:
+        """Launch the kernel on the bound buffers' current contents."""
+        self._launch()
