@@ -24,6 +24,7 @@ from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey, level_matrix
 from ddvs_service.registration.layout import ParamLayout
 from ddvs_service.registration.result import RegistrationResult
+from kernels.launch import Prepared
 from kernels.planar_step import (
     MASK_LIMIT,
     PARAMS_BANDS,
@@ -139,6 +140,11 @@ class PlanarRegistration:
         self._robust_code = ROBUST_CODES[config.robust]
         self._params = np.zeros(PARAMS_GAINS + self.grid[0] * self.grid[1], dtype=np.float32)
         self._work = np.zeros(work_size(self._n), dtype=np.float32)
+        # The current image's pyramid lives in fixed buffers, so that each level's kernels are prepared once
+        # (`kernels.launch.Prepared`, on first use) and every later launch skips Taichi's per-call argument set-up.
+        self._current = [np.empty_like(level) for level in self.reference]
+        self._steps: dict[int, Prepared] = {}
+        self._downsamples: dict[int, Prepared] = {}
 
     def _make_levels(self, pyramid: list[F32]) -> list[_Level]:
         """Levels 0 … L − 1 whose ROI keeps at least `min_level_size` pixels per side; refuses an all-masked ROI."""
@@ -201,28 +207,27 @@ class PlanarRegistration:
         G = np.eye(3) if G0 is None else sl3_normalize(np.asarray(G0, dtype=np.float64).reshape(3, 3))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
         state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0)
-        pyramid = build_pyramid(cur, len(levels))
+        pyramid = self._load_current(cur, len(levels))
         iterations: list[int] = []
         converged, reason = False, ""
         for level in reversed(levels):
-            ref_l, cur_l = self.reference[level.index], pyramid[level.index]
             fine = self.config.step_tolerance_px if tolerance_px is None else tolerance_px
             tolerance = fine if level.index == 0 else self.config.coarse_step_tolerance_px
             count = 0
             if level is levels[-1] and G0 is None:
                 # Cold start: match the photometric moments, then settle the similarity part with the photometric
                 # unknowns frozen (a misaligned least-squares gain shrinks towards 0 and erases the signal).
-                self._match_moments(level, ref_l, cur_l, state)
+                self._match_moments(level, self.reference[level.index], pyramid[level.index], state)
                 failed = False
                 for subset in (TRANSLATION, SIMILARITY):
-                    more, _, reason, failed = self._solve_level(level, ref_l, cur_l, state, tolerance, subset, False)
+                    more, _, reason, failed = self._solve_level(level, state, tolerance, subset, False)
                     count += more
                     if failed:
                         break
                 if failed:
                     iterations.append(count)
                     break
-            more, converged, reason, failed = self._solve_level(level, ref_l, cur_l, state, tolerance)
+            more, converged, reason, failed = self._solve_level(level, state, tolerance)
             count += more
             iterations.append(count)
             if failed:
@@ -235,6 +240,28 @@ class PlanarRegistration:
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio, converged=converged, reason=reason,
             scale=float("nan") if state.scale is None else state.scale,
         )
+
+    def _load_current(self, cur: F32, n_levels: int) -> list[F32]:
+        """Copy `cur` into the fixed level-0 buffer and downsample it into the next `n_levels − 1` buffers
+        (`images.build_pyramid`'s filter); returns the buffers."""
+        from kernels.pyramid import downsample2
+
+        np.copyto(self._current[0], cur)
+        for index in range(1, n_levels):
+            if index not in self._downsamples:
+                self._downsamples[index] = Prepared(downsample2, self._current[index - 1], self._current[index])
+            self._downsamples[index]()
+        return self._current
+
+    def _step(self, index: int) -> Prepared:
+        """`kernels.planar_step` bound to level `index`'s reference and current buffers and the shared parameter
+        and work arrays."""
+        from kernels.planar_step import planar_step
+
+        if index not in self._steps:
+            self._steps[index] = Prepared(planar_step, self.reference[index], self._current[index], self._params,
+                                          self._work, self.grid[0], self.grid[1])
+        return self._steps[index]
 
     def _fill_level(self, level: _Level) -> None:
         """The parameters fixed at one level: normalisation, ROI bounds, gain-grid span, band count."""
@@ -274,8 +301,6 @@ class PlanarRegistration:
     def _solve_level(
         self,
         level: _Level,
-        ref: F32,
-        cur: F32,
         state: _State,
         tolerance: float,
         geometric: tuple[int, ...] = tuple(range(8)),
@@ -284,23 +309,23 @@ class PlanarRegistration:
         """Gauss-Newton at one level over the sl(3) coordinates `geometric` (and the photometric unknowns unless
         `photometric` is False) until the corner motion still to come (`remaining_motion` of the steps so far) is
         below `tolerance` level pixels; updates `state`; returns (iterations, converged, reason, fatal failure)."""
-        from kernels.planar_step import planar_step
-
         cfg = self.config
         n, nt = self._n, self._n * (self._n + 1) // 2
-        free = np.ones(n, dtype=bool)
-        free[self._sl_G] = np.isin(np.arange(8), geometric)
+        free = np.zeros(n, dtype=bool)
+        free[self._sl_G][list(geometric)] = True
         free[self._sl_S] = free[self._sl_b] = photometric
         subset = None if free.all() else np.ix_(free, free)
         limit = cfg.max_step_fraction * level.size
         G_l = level.D @ state.G @ level.D_inv
         self._fill_level(level)
+        step_kernel = self._step(level.index)
         outcome: tuple[int, bool, str, bool] = (cfg.max_iterations, False, (
             f"max_iterations ({cfg.max_iterations}) reached at level {level.index}"), False)
         steps: list[float] = []
+        corners = _project(G_l, level.corners)
         for it in range(1, cfg.max_iterations + 1):
             self._fill_state(G_l, state)
-            planar_step(ref, cur, self._params, self._work, self.grid[0], self.grid[1])
+            step_kernel()
             acc = self._work[: self._nacc].astype(np.float64)
             n_valid, n_inliers, sum_r2, median = acc[nt + n :]
             valid_ratio = n_valid / level.n_pixels
@@ -326,16 +351,17 @@ class PlanarRegistration:
                 delta[free] = np.linalg.solve(H, -g)
             except np.linalg.LinAlgError:
                 delta[:] = np.nan
-            if not np.all(np.isfinite(delta)):
+            if not math.isfinite(float(delta.sum())):  # any NaN or infinite entry makes the sum non-finite
                 outcome = (it, False, f"non-finite update at level {level.index}", True)
                 break
-            before = _project(G_l, level.corners)
             G_l_new = G_l @ level.N_inv @ sl3_exp(delta[self._sl_G]) @ level.N
-            step = float(np.max(np.abs(_project(G_l_new, level.corners) - before)))
+            moved = _project(G_l_new, level.corners)
+            step = float(np.abs(moved - corners).max())
             if not step <= limit:  # also catches NaN
                 delta = delta * (limit / step) if math.isfinite(step) else np.zeros_like(delta)
                 G_l_new = G_l @ level.N_inv @ sl3_exp(delta[self._sl_G]) @ level.N
-            G_l = G_l_new
+                moved = _project(G_l_new, level.corners)
+            G_l, corners = G_l_new, moved
             state.gains = state.gains + delta[self._sl_S].reshape(self.grid)
             state.beta = state.beta + float(delta[self._sl_b][0])
             steps.append(step)
