@@ -11,6 +11,9 @@ Conventions (shared by the whole project):
 
 from __future__ import annotations
 
+import bisect
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -120,33 +123,30 @@ def sl3_hat(x: ArrayLike) -> F64:
 
 _EXPM_MAX_TERMS = 12  # degree cap: at ‖X‖₁ = 0.5 the first omitted term is 0.5¹³ / 13! ≈ 2e-14
 _UNIT_ROUNDOFF = 2.0**-53
+# `_TAYLOR_LIMITS[k]`: the largest 1-norm for which `k` Taylor terms leave a first omitted term
+# `norm^(k+1) / (k+1)!` at or below the double-precision unit roundoff (increasing in k).
+_TAYLOR_LIMITS = tuple((math.factorial(k + 1) * _UNIT_ROUNDOFF) ** (1.0 / (k + 1)) for k in range(_EXPM_MAX_TERMS))
 
 
 def _taylor_terms(norm: float) -> int:
     """Fewest Taylor terms `k` with `norm^(k+1) / (k+1)! ≤ 2⁻⁵³` (the first omitted term below the double-precision
     unit roundoff), at most `_EXPM_MAX_TERMS`; `norm` is the 1-norm of the scaled matrix (≤ 0.5)."""
-    k, bound = 0, 1.0
-    while k < _EXPM_MAX_TERMS:
-        bound *= norm / (k + 1)
-        if bound <= _UNIT_ROUNDOFF:
-            break
-        k += 1
-    return k
+    return bisect.bisect_left(_TAYLOR_LIMITS, norm)
 
 
 def expm(A: ArrayLike) -> F64:
     """Matrix exponential of a small square matrix: scaling and squaring (the scaled matrix has ‖X‖₁ ≤ 0.5) with a
     Taylor series truncated where the next term is below the double-precision roundoff (at most degree 12; a
-    Gauss-Newton increment of ~1e-3 needs 5 terms)."""
+    Gauss-Newton increment of ~1e-3 needs 5 terms), evaluated in Horner form `I + X (I + X/2 (I + … X/k))`.
+    Written for few numpy calls: it runs once per Gauss-Newton iteration."""
     A = np.asarray(A, dtype=np.float64)
-    norm = float(np.linalg.norm(A, ord=1))
-    s = max(0, int(np.ceil(np.log2(norm))) + 1) if norm > 0.5 else 0
-    X = A / (2.0**s)
-    E = np.eye(A.shape[0])
-    term = np.eye(A.shape[0])
-    for k in range(1, _taylor_terms(norm / 2.0**s) + 1):
-        term = term @ X / k
-        E = E + term
+    norm = float(np.abs(A).sum(axis=0).max())
+    s = max(0, math.ceil(math.log2(norm)) + 1) if norm > 0.5 else 0
+    X = A * 0.5**s
+    identity = np.eye(A.shape[0])
+    E = identity.copy()
+    for k in range(_taylor_terms(norm * 0.5**s), 0, -1):
+        E = identity + (X @ E) / k
     for _ in range(s):
         E = E @ E
     return E
