@@ -126,12 +126,14 @@ def peaks(surface: F32, k: int, radius: int, allowed: NDArray[np.bool_] | None =
     return found
 
 
-def rotation_scale_candidates(
-    reference_window: F32, current: F32, cfg: FourierMellinConfig
-) -> list[tuple[float, float]]:
-    """(θ mod π radians, s) candidates for `current` ≈ `reference_window` rotated by θ and scaled by s."""
-    lp_ref = log_polar(log_spectrum(reference_window), cfg)
-    lp_cur = log_polar(log_spectrum(current), cfg)
+def log_polar_spectrum(image: F32, cfg: FourierMellinConfig) -> F32:
+    """The log-polar resampling (`log_polar`) of the image's high-pass weighted log-magnitude spectrum."""
+    return log_polar(log_spectrum(image), cfg)
+
+
+def rotation_scale_peaks(lp_ref: F32, lp_cur: F32, cfg: FourierMellinConfig) -> list[tuple[float, float]]:
+    """(θ mod π radians, s) candidates from the log-polar spectra (`log_polar_spectrum`) of a reference window and
+    of the current image: current ≈ reference rotated by θ and scaled by s."""
     n_rho = cfg.n_rho
     pad = np.zeros((2 * n_rho, cfg.n_theta), np.float32)
     a, b = pad.copy(), pad.copy()
@@ -149,6 +151,13 @@ def rotation_scale_candidates(
         shift = r if r < n_rho else r - 2 * n_rho
         found.append((float(c * np.pi / cfg.n_theta) % np.pi, float(np.exp(-shift * dlog))))
     return found
+
+
+def rotation_scale_candidates(
+    reference_window: F32, current: F32, cfg: FourierMellinConfig
+) -> list[tuple[float, float]]:
+    """(θ mod π radians, s) candidates for `current` ≈ `reference_window` rotated by θ and scaled by s."""
+    return rotation_scale_peaks(log_polar_spectrum(reference_window, cfg), log_polar_spectrum(current, cfg), cfg)
 
 
 def similarity(theta: float, scale: float, src_centre: tuple[float, float], dst_centre: tuple[float, float]) -> F64:
@@ -182,12 +191,6 @@ def _dft_size(n: int) -> int:
         if k == 1:
             return m
         m += 1
-
-
-def disc(shape: tuple[int, int], centre: tuple[float, float], radius: float) -> F32:
-    """1 inside the disc of `radius` pixels around `centre` (u, v), 0 outside."""
-    v, u = np.mgrid[0 : shape[0], 0 : shape[1]]
-    return ((u - centre[0]) ** 2 + (v - centre[1]) ** 2 <= radius * radius).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -270,42 +273,80 @@ class TranslationSearch:
         return found
 
 
+def level_roi(roi: Roi, level: int) -> Roi:
+    """The ROI `(x, y, w, h)` at pyramid `level`: the level pixels whose footprint lies inside it (the planar
+    engine's level ROI)."""
+    x, y, w, h = roi
+    k = 2**level
+    u0, v0 = -(-x // k), -(-y // k)
+    u1, v1 = (x + w) // k - 1, (y + h) // k - 1
+    return u0, v0, u1 - u0 + 1, v1 - v0 + 1
+
+
 @dataclass(frozen=True)
-class SearchPair:
-    """The reference and current images at pyramid level `level` (`images.build_pyramid`, `D` = full-resolution →
-    level pixels), the ROI there (`roi`, the same pixels as the planar engine's level) and its template. Hypotheses
-    are searched and ranked at this resolution."""
+class SearchReference:
+    """The reference side of the search, computed once per (reference, ROI): the search pyramid `level`
+    (`images.build_pyramid`, `D` = full-resolution → level pixels), the reference there (`image`) and one level
+    coarser (`coarse`, where the screening starts), the ROI at the search level (`roi`), its `template`, and the
+    log-polar spectrum of the reference window around it (`spectrum`)."""
 
     level: int
     D: F64
-    reference: F32
-    current: F32
+    image: F32
+    coarse: F32
     roi: Roi
     template: F32
+    spectrum: F32
 
     @staticmethod
-    def build(reference: F32, roi: Roi, current: F32, cfg: FourierMellinConfig) -> SearchPair:
+    def build(reference: F32, roi: Roi, cfg: FourierMellinConfig) -> SearchReference:
         """The coarsest level at which the ROI keeps `cfg.min_search_roi` pixels a side, and no coarser than needed
-        to bring the current image down to `cfg.search_width` pixels wide."""
-        x, y, w, h = roi
+        to bring the image down to `cfg.search_width` pixels wide."""
+        w, h = roi[2], roi[3]
         level = 0
-        while (min(w, h) >> (level + 1)) >= cfg.min_search_roi and (current.shape[1] >> level) > cfg.search_width:
+        while (min(w, h) >> (level + 1)) >= cfg.min_search_roi and (reference.shape[1] >> level) > cfg.search_width:
             level += 1
-        ref_pyr, cur_pyr = build_pyramid(reference, level + 1), build_pyramid(current, level + 1)
-        k = 2**level
-        u0, v0 = -(-x // k), -(-y // k)
-        u1, v1 = (x + w) // k - 1, (y + h) // k - 1
-        sroi = (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
-        template = np.ascontiguousarray(ref_pyr[level][v0 : v1 + 1, u0 : u1 + 1])
-        return SearchPair(level, level_matrix(level), ref_pyr[level], cur_pyr[level], sroi, template)
+        pyramid = build_pyramid(reference, level + 2)
+        sroi = level_roi(roi, level)
+        u0, v0, sw, sh = sroi
+        template = np.ascontiguousarray(pyramid[level][v0 : v0 + sh, u0 : u0 + sw])
+        spectrum = log_polar_spectrum(reference_window(pyramid[level], sroi, cfg.context), cfg)
+        return SearchReference(level, level_matrix(level), pyramid[level], pyramid[level + 1], sroi, template,
+                               spectrum)
+
+
+@dataclass(frozen=True)
+class SearchPair:
+    """The reference side and the current image at the search level (`current`) and one level coarser
+    (`coarse`). Hypotheses are searched and ranked at the search level."""
+
+    reference: SearchReference
+    current: F32
+    coarse: F32
+
+    @staticmethod
+    def build(reference: SearchReference, current: F32) -> SearchPair:
+        """The current image's pyramid down to one level below the search level (same size as the reference)."""
+        pyramid = build_pyramid(current, reference.level + 2)
+        return SearchPair(reference, pyramid[reference.level], pyramid[reference.level + 1])
+
+    @property
+    def roi(self) -> Roi:
+        return self.reference.roi
+
+    @property
+    def template(self) -> F32:
+        return self.reference.template
 
     def to_level(self, G: F64) -> F64:
         """A full-resolution warp expressed in level pixels (`D G D⁻¹`)."""
-        return self.D @ G @ np.linalg.inv(self.D)
+        D = self.reference.D
+        return D @ G @ np.linalg.inv(D)
 
     def to_full(self, G_level: F64) -> F64:
         """A level warp expressed in full-resolution pixels (`D⁻¹ G D`), det 1."""
-        G = np.linalg.inv(self.D) @ G_level @ self.D
+        D = self.reference.D
+        G = np.linalg.inv(D) @ G_level @ D
         return G / np.cbrt(np.linalg.det(G))
 
     def scores(self, Gs: list[F64]) -> list[PhotometricScore]:
@@ -328,8 +369,7 @@ def rotation_scale_grid(cfg: FourierMellinConfig) -> list[tuple[float, float]]:
 def rotation_scale_stages(search: SearchPair, cfg: FourierMellinConfig) -> list[list[tuple[float, float]]]:
     """(θ, s) candidates in two stages: the log-polar peaks (θ and θ + π), then the uniform grid (the fallback
     where the spectrum peaks miss; the initialiser searches it only when the first stage gave no clear winner)."""
-    window = reference_window(search.reference, search.roi, cfg.context)
-    peaks_mod_pi = rotation_scale_candidates(window, search.current, cfg)
+    peaks_mod_pi = rotation_scale_peaks(search.reference.spectrum, log_polar_spectrum(search.current, cfg), cfg)
     return [[(t, s) for t_mod_pi, s in peaks_mod_pi for t in (t_mod_pi, t_mod_pi + np.pi)], rotation_scale_grid(cfg)]
 
 

@@ -12,7 +12,11 @@ start reproduces — searched only when stages 1–2 ended LOST, and its winner 
    and the `final_refined` best distinct screened ones (winner and runner-up) are refined at full resolution by a
    `Refiner` – the planar direct engine (eqs. (4)–(5) with ρ* ≡ 0) by default, started one level above the search
    level. A refiner returns one or several refinements per start (hook for the general model of eq. (2) started
-   from several epipole directions) and the current image sampled at its own warp, so any model is scored the same;
+   from several epipole directions) and the current image sampled at its own warp, so any model is scored the same.
+   Only the best screened one gets the full budget; the others are *rivals*, refined on a smaller budget
+   (`PlanarRefiner`: `rival_iterations` per level) that suffices to tell whether they reach a good solution (a
+   wrong match otherwise wanders for the engine's whole budget), and a rival that comes out best is refined again
+   with the full budget;
 3. the refinements are ranked by their robust cost over the visible pixels (those keeping `min_visible` of the ROI
    in view first); `margin` = visible cost of the best *good* different solution (warp farther than `distinct_px`
    RMS over the ROI, visible cost ≤ `max_cost`) minus the winner's (1 − the winner's when there is none);
@@ -25,7 +29,7 @@ start reproduces — searched only when stages 1–2 ended LOST, and its winner 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
@@ -37,12 +41,14 @@ from ddvs_service.registration.global_fourier_mellin import (
     FourierMellinConfig,
     Hypothesis,
     SearchPair,
+    SearchReference,
     TranslationSearch,
     fourier_mellin_hypotheses,
     rotation_scale_stages,
     translation_hypotheses,
 )
-from ddvs_service.registration.global_scenes import warp_rms
+from ddvs_service.registration.global_scenes import rms_distance, roi_samples, warp_rms
+from ddvs_service.registration.global_screen import BatchScreen
 from kernels import backend
 
 F32 = NDArray[np.float32]
@@ -67,47 +73,38 @@ class Refinement:
 class Refiner(Protocol):
     """Refines a starting warp `G0` (full-resolution pixels) of a fixed reference ROI in `current`; may return several
     refinements (e.g. the general model started from several epipole directions). `first_level`: the coarsest
-    pyramid level worth solving (the start is already within about a pixel there)."""
+    pyramid level worth solving (the start is already within about a pixel there). `rival`: the start is refined only
+    to be compared with a better-ranked one, so a smaller budget may be spent on it."""
 
-    def __call__(self, current: F32, G0: F64, first_level: int) -> list[Refinement]: ...
+    def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]: ...
 
 
 RefinerFactory = Callable[[F32, Roi], Refiner]
 
 
 class PlanarRefiner:
-    """The planar direct engine (`registration.planar.PlanarRegistration`, coarse to fine) as a `Refiner`."""
+    """The planar direct engine (`registration.planar.PlanarRegistration`, coarse to fine) as a `Refiner`; a rival
+    gets at most `rival_iterations` Gauss-Newton iterations per level (a correct start from the screening converges
+    in about 5)."""
 
-    def __init__(self, reference: F32, roi: Roi, config: Any = None) -> None:
+    def __init__(self, reference: F32, roi: Roi, config: Any = None, rival_iterations: int = 10) -> None:
         from ddvs_service.registration.config import RegistrationConfig
         from ddvs_service.registration.planar import PlanarRegistration
 
         self.roi = roi
-        self.problem = PlanarRegistration(reference, roi=roi, config=config or RegistrationConfig())
+        config = config or RegistrationConfig()
+        self.problem = PlanarRegistration(reference, roi=roi, config=config)
+        self.rival_problem = PlanarRegistration(
+            reference, roi=roi, config=replace(config, max_iterations=min(rival_iterations, config.max_iterations)))
 
-    def __call__(self, current: F32, G0: F64, first_level: int) -> list[Refinement]:
-        result = self.problem.run(current, G0=G0, first_level=first_level)
+    def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]:
+        problem = self.rival_problem if rival else self.problem
+        result = problem.run(current, G0=G0, first_level=first_level)
         if not np.all(np.isfinite(result.G)):
             return []
         x, y, w, h = self.roi
         sampled, valid = sample_through(current, result.G, (h, w), (x, y))
         return [Refinement(G=result.G, sampled=sampled, valid=valid, model="planar", detail=result)]
-
-
-def screen(search: SearchPair, starts: list[F64], iterations: int) -> list[F64]:
-    """Planar refinement of each start at the search level only (a 2-level pyramid over the search ROI, at most
-    `iterations` Gauss-Newton steps per level); returns full-resolution warps (non-finite results dropped)."""
-    from ddvs_service.registration.config import RegistrationConfig
-    from ddvs_service.registration.planar import PlanarRegistration
-
-    config = RegistrationConfig(levels=2, max_iterations=iterations, min_level_size=12, min_valid_ratio=0.2)
-    problem = PlanarRegistration(search.reference, roi=search.roi, config=config)
-    out = []
-    for G in starts:
-        result = problem.run(search.current, G0=search.to_level(G))
-        if np.all(np.isfinite(result.G)):
-            out.append(search.to_full(result.G))
-    return out
 
 
 @dataclass(frozen=True)
@@ -131,12 +128,14 @@ class GlobalInitConfig:
 
 @dataclass(frozen=True)
 class Candidate:
-    """A refined hypothesis: where it started, what it became, and its score."""
+    """A refined hypothesis: where it started, what it became, its score, and whether it was refined as a `rival`
+    (on the smaller budget)."""
 
     source: str
     start_cost: float
     refinement: Refinement
     score: PhotometricScore
+    rival: bool = False
 
 
 @dataclass(frozen=True)
@@ -176,8 +175,9 @@ class InitResult:
 def _check_inputs(reference: F32, roi: Roi, current: F32) -> tuple[F32, F32]:
     ref = np.ascontiguousarray(reference, dtype=np.float32)
     cur = np.ascontiguousarray(current, dtype=np.float32)
-    if ref.ndim != 2 or cur.ndim != 2:
-        raise ValueError(f"expected 2-D grey images, got reference {ref.shape} and current {cur.shape}")
+    if ref.ndim != 2 or cur.ndim != 2 or ref.shape != cur.shape:
+        raise ValueError(f"expected 2-D grey images of the same size, got reference {ref.shape} and current "
+                         f"{cur.shape}")
     x, y, w, h = roi
     if w < 16 or h < 16 or x < 0 or y < 0 or x + w > ref.shape[1] or y + h > ref.shape[0]:
         raise ValueError(
@@ -188,19 +188,51 @@ def _check_inputs(reference: F32, roi: Roi, current: F32) -> tuple[F32, F32]:
     return ref, cur
 
 
+@dataclass(frozen=True)
+class ReferenceSide:
+    """Everything an initialisation derives from the reference image and the ROI alone, kept across calls with the
+    same reference (a tracker re-initialises against it after LOST): the search level's reference pyramid, template
+    and log-polar spectrum (`search`), the screening's geometry (`screen`), the full-resolution `refine`r and
+    `template`, and the points over which warp distances are measured (`points`, `global_scenes.roi_samples`)."""
+
+    reference: F32  # a private copy: a later call is served from this side only if its reference is equal
+    roi: Roi
+    search: SearchReference
+    screen: BatchScreen
+    refine: Refiner
+    template: F32
+    points: F64
+
+    def serves(self, reference: F32, roi: Roi) -> bool:
+        return tuple(roi) == self.roi and np.array_equal(reference, self.reference)
+
+
 class GlobalInitializer:
-    """Direct global initialiser; `refiner_factory(reference, roi)` builds the refiner (planar engine by default)."""
+    """Direct global initialiser; `refiner_factory(reference, roi)` builds the refiner (planar engine by default).
+    The reference side of the last reference and ROI (`ReferenceSide`) is kept for the next call."""
 
     def __init__(self, config: GlobalInitConfig | None = None, refiner_factory: RefinerFactory | None = None) -> None:
         backend.init()
         self.config = config or GlobalInitConfig()
         self.refiner_factory: RefinerFactory = refiner_factory or PlanarRefiner
+        self._side: ReferenceSide | None = None
+
+    def reference_side(self, ref: F32, roi: Roi) -> ReferenceSide:
+        """The prepared reference side for this reference and ROI (the kept one when they are the same)."""
+        if self._side is None or not self._side.serves(ref, roi):
+            x, y, w, h = roi
+            search = SearchReference.build(ref, roi, self.config.fourier_mellin)
+            self._side = ReferenceSide(
+                reference=ref.copy(), roi=tuple(roi), search=search,
+                screen=BatchScreen(search, roi, self.config.screen_iterations), refine=self.refiner_factory(ref, roi),
+                template=ref[y : y + h, x : x + w].copy(), points=roi_samples(roi))
+        return self._side
 
     def hypotheses(self, reference: F32, roi: Roi, current: F32) -> list[Hypothesis]:
         """Raw hypotheses of every stage, lowest photometric cost first (direct ones, plus the feature one if
         configured)."""
         ref, cur = _check_inputs(reference, roi, current)
-        search = SearchPair.build(ref, roi, cur, self.config.fourier_mellin)
+        search = SearchPair.build(self.reference_side(ref, roi).search, cur)
         found = fourier_mellin_hypotheses(search, self.config.fourier_mellin) + self._features(search, ref, roi, cur)
         return sorted(found, key=lambda hyp: hyp.score.cost)
 
@@ -217,12 +249,10 @@ class GlobalInitializer:
         below `early_accept_cost`."""
         cfg, fm = self.config, self.config.fourier_mellin
         ref, cur = _check_inputs(reference, roi, current)
-        search = SearchPair.build(ref, roi, cur, fm)
+        side = self.reference_side(ref, roi)
+        search = SearchPair.build(side.search, cur)
         translation = TranslationSearch(search.current, search.template, fm.scale_range[1])
-        refine = self.refiner_factory(ref, roi)
-        x, y, w, h = roi
-        template = ref[y : y + h, x : x + w]
-        first_level = max(0, search.level - 1)
+        first_level = max(0, side.search.level - 1)
         extra = self._features(search, ref, roi, cur)
         screened: list[tuple[float, F64, Hypothesis]] = []  # (screened cost, screened G, start)
         refined: dict[int, list[Candidate]] = {}  # by position in `screened`
@@ -231,7 +261,7 @@ class GlobalInitializer:
             lambda s=stage: translation_hypotheses(search, translation, s, fm)
             for stage in rotation_scale_stages(search, fm)
         ]
-        stages.append(lambda: foreshortened(search, roi, [(c, G) for c, G, _ in screened], cfg))
+        stages.append(lambda: foreshortened(search, side, [(c, G) for c, G, _ in screened], cfg))
         result = InitResult("LOST", None, 1.0, 0.0, "no stage ran", [], 0)
         for index, stage_hypotheses in enumerate(stages):
             if index == len(stages) - 1 and (result.status == "OK" or cfg.tilt_seeds == 0):
@@ -239,35 +269,50 @@ class GlobalInitializer:
             raw = sorted(stage_hypotheses() + extra, key=lambda h: h.score.cost)
             extra, n_raw = [], n_raw + len(raw)
             seen = [G for _, G, _ in screened]
-            fresh = [hyp for hyp in raw if all(warp_rms(hyp.G, G, roi) > cfg.distinct_px for G in seen)]
-            starts = _distinct([(hyp.G, hyp) for hyp in fresh], cfg.max_screened, roi, cfg.distinct_px)
-            Gs = screen(search, [hyp.G for hyp in starts], cfg.screen_iterations)
+            fresh = [hyp for hyp in raw if all(rms_distance(hyp.G, G, side.points) > cfg.distinct_px for G in seen)]
+            starts = _distinct([(hyp.G, hyp) for hyp in fresh], cfg.max_screened, side.points, cfg.distinct_px)
+            Gs = side.screen.run(search, [hyp.G for hyp in starts])
             screened += [(_rank(score, cfg), G, hyp) for score, G, hyp in zip(search.scores(Gs), Gs, starts,
                                                                               strict=True)]
             order = sorted(range(len(screened)), key=lambda i: screened[i][0])
-            for i in _distinct([(screened[i][1], i) for i in order], cfg.final_refined, roi, cfg.distinct_px):
+            best = _distinct([(screened[i][1], i) for i in order], cfg.final_refined, side.points, cfg.distinct_px)
+            for rank, i in enumerate(best):
                 if i not in refined:
                     _, G, hyp = screened[i]
-                    refined[i] = [Candidate(hyp.source, hyp.score.cost, r, photometric_score(template, r.sampled,
-                                                                                             r.valid))
-                                  for r in refine(cur, G, first_level)]
-            candidates = sorted((c for cs in refined.values() for c in cs), key=lambda c: _rank(c.score, cfg))
+                    refined[i] = _refine(side, cur, G, hyp, first_level, rival=rank > 0)
+            candidates = _ranked(refined, cfg)
+            if candidates and candidates[0].rival:  # a rival came out best: give it the full budget
+                i = next(i for i, cs in refined.items() if any(c is candidates[0] for c in cs))
+                refined[i] = _refine(side, cur, candidates[0].refinement.G, screened[i][2], first_level, rival=False)
+                candidates = _ranked(refined, cfg)
             quality = search.scores([candidates[0].refinement.G])[0].cost_visible if candidates else 1.0
-            result = _decide(candidates, quality, n_raw, roi, cfg)
+            result = _decide(candidates, quality, n_raw, side.points, cfg)
             if result.status == "OK" and result.cost <= cfg.early_accept_cost:
                 break
         return result
 
 
-def foreshortened(search: SearchPair, roi: Roi, screened: list[tuple[float, F64]], cfg: GlobalInitConfig
-                  ) -> list[Hypothesis]:
+def _refine(side: ReferenceSide, cur: F32, G: F64, start: Hypothesis, first_level: int, rival: bool
+            ) -> list[Candidate]:
+    """The refinements of the screened warp `G` of hypothesis `start`, scored over the full-resolution template."""
+    return [Candidate(start.source, start.score.cost, r, photometric_score(side.template, r.sampled, r.valid), rival)
+            for r in side.refine(cur, G, first_level, rival)]
+
+
+def _ranked(refined: dict[int, list[Candidate]], cfg: GlobalInitConfig) -> list[Candidate]:
+    """Every refined candidate, best first (`_rank`)."""
+    return sorted((c for cs in refined.values() for c in cs), key=lambda c: _rank(c.score, cfg))
+
+
+def foreshortened(search: SearchPair, side: ReferenceSide, screened: list[tuple[float, F64]],
+                  cfg: GlobalInitConfig) -> list[Hypothesis]:
     """Stage 3 starts: each of the `cfg.tilt_seeds` best distinct `screened` warps (ranking key, full-resolution G)
     composed with a compression by `cfg.tilt_factor` of the reference ROI along 0°, 45°, 90° and 135° about its
     centre (`G · C A C⁻¹`; a stretch is a compression across plus a scale, which the refinement absorbs)."""
-    x, y, w, h = roi
+    x, y, w, h = side.roi
     C = np.array([[1.0, 0.0, x + (w - 1) / 2], [0.0, 1.0, y + (h - 1) / 2], [0.0, 0.0, 1.0]])
     order = sorted(screened, key=lambda item: item[0])
-    seeds = _distinct([(G, G) for _, G in order], cfg.tilt_seeds, roi, cfg.distinct_px)
+    seeds = _distinct([(G, G) for _, G in order], cfg.tilt_seeds, side.points, cfg.distinct_px)
     starts = []
     for G in seeds:
         for phi in np.radians([0.0, 45.0, 90.0, 135.0]):
@@ -287,18 +332,20 @@ def _rank(score: PhotometricScore, cfg: GlobalInitConfig) -> float:
     return score.cost_visible + (1.0 if score.visible < cfg.min_visible else 0.0)
 
 
-def _distinct(items: list[tuple[F64, T]], limit: int, roi: Roi, distinct_px: float) -> list[T]:
-    """The first `limit` items whose warps are pairwise farther apart than `distinct_px` RMS over the ROI."""
+def _distinct(items: list[tuple[F64, T]], limit: int, points: F64, distinct_px: float) -> list[T]:
+    """The first `limit` items whose warps are pairwise farther apart than `distinct_px` RMS over the ROI
+    (`points`: `ReferenceSide.points`)."""
     kept: list[tuple[F64, T]] = []
     for G, item in items:
         if len(kept) == limit:
             break
-        if all(warp_rms(G, other, roi) > distinct_px for other, _ in kept):
+        if all(rms_distance(G, other, points) > distinct_px for other, _ in kept):
             kept.append((G, item))
     return [item for _, item in kept]
 
 
-def _decide(candidates: list[Candidate], quality: float, n_raw: int, roi: Roi, cfg: GlobalInitConfig) -> InitResult:
+def _decide(candidates: list[Candidate], quality: float, n_raw: int, points: F64, cfg: GlobalInitConfig
+            ) -> InitResult:
     """Winner, margin to the best *good* different solution, and the LOST criteria of the module docstring.
     `quality`: the winner's visible cost at the search level (coarse: sub-pixel model errors, e.g. the parallax a
     planar warp leaves on a curved target, and aliasing weigh less there than a wrong match)."""
@@ -306,7 +353,7 @@ def _decide(candidates: list[Candidate], quality: float, n_raw: int, roi: Roi, c
         return InitResult("LOST", None, 1.0, 0.0, "no hypothesis could be refined", candidates, n_raw)
     best = candidates[0]
     rival = next((c for c in candidates[1:] if c.score.cost_visible <= cfg.max_cost
-                  and warp_rms(c.refinement.G, best.refinement.G, roi) > cfg.distinct_px), None)
+                  and rms_distance(c.refinement.G, best.refinement.G, points) > cfg.distinct_px), None)
     margin = (rival.score.cost_visible if rival else 1.0) - best.score.cost_visible
     cost = quality
     max_cost = cfg.tilt_max_cost if best.source == FORESHORTENED else cfg.max_cost
