@@ -41,7 +41,13 @@ from ddvs_service.lie import sl3_exp
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey
-from ddvs_service.registration.planar import MAD_TO_SIGMA, PlanarRegistration, Roi, remaining_motion
+from ddvs_service.registration.planar import (
+    MAD_TO_SIGMA,
+    PlanarRegistration,
+    Roi,
+    _symmetric_index,
+    remaining_motion,
+)
 
 F64 = NDArray[np.float64]
 DEGENERATE_RCOND = 1e-9
@@ -178,6 +184,7 @@ class _State:
     residual_rms: float = float("nan")
     inlier_ratio: float = 0.0
     cost: float = float("inf")
+    information: F64 | None = None  # on ρ*, from the first finest-level evaluation of a tracked frame
 
 
 def _normalise(state: _State) -> None:
@@ -209,10 +216,12 @@ class GeneralRegistration:
         self.basis = ParallaxBasis.over(self.roi, config.rho_degree)
         self._params = np.zeros(params_size(self.basis.size), dtype=np.float32)
         self._work: dict[int, NDArray[np.float32]] = {}
+        self._sym: dict[int, NDArray[np.intp]] = {}
         x, y, w, h = self.roi
         u, v = np.meshgrid(np.linspace(x, x + w - 1, 16), np.linspace(y, y + h - 1, 12))
-        self._probe = np.c_[u.ravel(), v.ravel()]  # points where steps and parallax are measured
-        self._probe_phi = self.basis.values(self._probe)
+        # Points where steps and parallax are measured (homogeneous, full resolution), and the basis there.
+        self._probe = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
+        self._probe_phi = self.basis.values(self._probe[:, :2])
         self.N0 = self._norm_matrix(self.levels[0].norm)
 
     @staticmethod
@@ -255,7 +264,8 @@ class GeneralRegistration:
         rival = next((s for s, *_ in solutions[1:] if self._epipole_angle(best, s) > self.config.distinct_epipole_deg),
                      None)
         margin = (rival.cost - best.cost) / best.cost if rival is not None else float("inf")
-        info = self._information(pyramid, best)
+        H, _, _ = self._normal_equations(self.levels[0], self.reference[0], pyramid[0], best, with_rho=True)
+        info = self._rho_information(H, best.scale)
         result = self._result(best, [*planar.iterations, *iterations], converged, reason, info)
         result.margin = margin
         self._check_parallax(result, best)
@@ -265,13 +275,17 @@ class GeneralRegistration:
 
     def track(
         self, current: F32, G0: F64, e0: F64, rho: F64, gains0: ArrayLike | float = 1.0, beta0: float = 0.0,
-        scale0: float | None = None, information: bool = True, first_level: int | None = None,
+        scale0: float | None = None, first_level: int | None = None, tolerance_px: float | None = None,
     ) -> GeneralResult:
         """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
-        when ρ* is 0 (planar). `information`: also evaluate the information on ρ* at the solution (one more pass,
-        skipped when the parallax is below `min_parallax_px`).
+        when ρ* is 0 (planar). The result carries the information on ρ* (`_rho_information`) of the first
+        finest-level evaluation (the start of that level, a fraction of a pixel from the solution: that one launch
+        also carries the ρ* columns, dropped from the step), or 0 when the frame's parallax is below
+        `min_parallax_px` at the start or at the solution (no usable information; no ρ* columns are evaluated).
         `first_level`: the coarsest pyramid level solved (0 = full resolution only; default the coarsest), as
-        `PlanarRegistration.run`: a warm start with small predicted motion skips the coarse levels."""
+        `PlanarRegistration.run`: a warm start with small predicted motion skips the coarse levels.
+        `tolerance_px`: convergence tolerance at full resolution (`config.base.step_tolerance_px` by default; the
+        tracker passes `tracking_step_tolerance_px`)."""
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         pyramid = build_pyramid(current, len(levels))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
@@ -279,16 +293,17 @@ class GeneralRegistration:
                        np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0)
         _normalise(state)
         free_e = bool(np.any(state.c != 0.0))
+        information = free_e and self._observed(state)
         iterations: list[int] = []
         converged, reason = False, ""
         for level in reversed(levels):
-            n, converged, reason, failed = self._solve(level, pyramid, state, free_e=free_e, free_rho=False)
+            n, converged, reason, failed = self._solve(level, pyramid, state, free_e=free_e, free_rho=False,
+                                                       tolerance_px=tolerance_px, information=information)
             iterations.append(n)
             if failed:
                 return self._failed(state, reason, _flags_for(reason), iterations)
-        # A frame whose parallax is below detection carries no usable information on ρ*: skip that pass.
-        observed = free_e and _rms(self._parallax_px(state.G, state.e, state.c)) >= self.config.min_parallax_px
-        info = self._information(pyramid, state) if information and observed else np.zeros((self.basis.size,) * 2)
+        observed = state.information is not None and self._observed(state)
+        info = state.information if observed else np.zeros((self.basis.size,) * 2)
         return self._result(state, iterations, converged, reason, info)
 
     # --------------------------------------------------------------------------------------------- internals
@@ -322,35 +337,37 @@ class GeneralRegistration:
         n = n_columns(self.basis.size, with_rho, *self.grid)
         if n not in self._work:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
+            self._sym[n] = _symmetric_index(n)
         work = self._work[n]
-        D = level.D
-        self._fill(level, D @ state.G @ np.linalg.inv(D), D @ state.e, state)
+        self._fill(level, level.D @ state.G @ level.D_inv, level.D @ state.e, state)
         general_step(ref, cur, self._params, work, self.basis.degree, self.basis.size, with_rho, *self.grid)
         acc = work[: n_acc(n)].astype(np.float64)
         nt = n * (n + 1) // 2
-        H = np.zeros((n, n))
-        H[np.triu_indices(n)] = acc[:nt]
-        return H + np.triu(H, 1).T, acc[nt : nt + n], acc[nt + n :]
+        return acc[self._sym[n]], acc[nt : nt + n], acc[nt + n :]
 
     def _solve(
-        self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool
+        self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool,
+        tolerance_px: float | None = None, information: bool = False,
     ) -> tuple[int, bool, str, bool]:
         """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure). Converged: the probe
         points' motion still to come (`planar.remaining_motion`: the geometric tail of the last contractions of the
-        steps, as the planar engine) is below `step_tolerance_px` (full resolution) at the finest level, below
-        `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level)."""
+        steps, as the planar engine) is below `tolerance_px` (full resolution; `step_tolerance_px` by default) at
+        the finest level, below `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next
+        level). `information` (ρ* fixed): the first finest-level launch also carries the ρ* columns; their
+        information goes to `state.information`, and they are dropped from that step."""
         cfg = self.config.base
-        tolerance = cfg.step_tolerance_px if level.index == 0 else cfg.coarse_step_tolerance_px
+        fine = cfg.step_tolerance_px if tolerance_px is None else tolerance_px
+        tolerance = fine if level.index == 0 else cfg.coarse_step_tolerance_px
         ref, cur = self.reference[level.index], pyramid[level.index]
         nr = self.basis.size if free_rho else 0
         ng = self.grid[0] * self.grid[1]
-        D, D_inv = level.D, np.linalg.inv(level.D)
-        N = level.N
-        N_inv = np.linalg.inv(N)
+        D, D_inv, N, N_inv = level.D, level.D_inv, level.N, level.N_inv
+        tracked = np.r_[0:11, 11 + self.basis.size : 11 + self.basis.size + ng + 1]  # columns without ρ*
         e_sl = slice(8, 11)
         steps: list[float] = []
         for it in range(1, cfg.max_iterations + 1):
-            H, g, stats = self._normal_equations(level, ref, cur, state, with_rho=free_rho)
+            with_information = information and not free_rho and level.index == 0 and it == 1
+            H, g, stats = self._normal_equations(level, ref, cur, state, with_rho=free_rho or with_information)
             n_valid, n_inliers, sum_r2, median = stats
             if n_valid < cfg.min_valid_ratio * level.n_pixels:
                 return it, False, (f"diverged at level {level.index}: only {n_valid / level.n_pixels:.0%} of the ROI "
@@ -359,6 +376,9 @@ class GeneralRegistration:
             state.cost = sum_r2 / n_valid
             state.inlier_ratio = min(1.0, n_inliers / level.n_pixels) if state.scale is not None else 1.0
             state.scale = max(MAD_TO_SIGMA * median, cfg.scale_floor)
+            if with_information:
+                state.information = self._rho_information(H, state.scale)
+                H, g = H[np.ix_(tracked, tracked)], g[tracked]
             T = np.eye(len(g))
             if not free_e:
                 T = np.delete(T, [8, 9, 10], axis=1)
@@ -381,9 +401,9 @@ class GeneralRegistration:
             delta = T @ np.linalg.solve(Hr, -gr)
             if not np.all(np.isfinite(delta)):
                 return it, False, f"non-finite update at level {level.index}", True
-            before = warp_points(state.G, state.e, self.basis, state.c, self._probe)
+            before = self._probe_warp(state.G, state.e, state.c)
             new = self._apply(state, delta, D, D_inv, N, N_inv, nr, ng, 1.0)
-            step_px = float(np.max(np.abs(warp_points(new.G, new.e, self.basis, new.c, self._probe) - before)))
+            step_px = float(np.max(np.abs(self._probe_warp(new.G, new.e, new.c) - before)))
             step = step_px * D[0, 0]  # level pixels
             limit = cfg.max_step_fraction * level.size
             if not step <= limit:
@@ -421,11 +441,9 @@ class GeneralRegistration:
             state.e = state.e / k
             state.c = state.c * k
 
-    def _information(self, pyramid: list[F32], state: _State) -> F64:
-        """Information on the ρ* coefficients given `e` at the finest level: Schur complement of JᵀWJ over the
-        other unknowns except `e`, divided by σ²."""
-        level = self.levels[0]
-        H, _, _ = self._normal_equations(level, self.reference[0], pyramid[0], state, with_rho=True)
+    def _rho_information(self, H: F64, sigma: float | None) -> F64:
+        """Information on the ρ* coefficients given `e`, from the normal equations `H` of a launch with the ρ*
+        columns: Schur complement of `H` over the other unknowns except `e`, divided by σ²."""
         nr = self.basis.size
         rho = np.arange(11, 11 + nr)
         other = np.r_[np.arange(8), np.arange(11 + nr, H.shape[0])]
@@ -435,13 +453,21 @@ class GeneralRegistration:
             schur = H[np.ix_(rho, rho)] - Hro @ np.linalg.solve(Hoo, Hro.T)
         except np.linalg.LinAlgError:
             return np.zeros((nr, nr))
-        sigma = state.scale if state.scale else 1.0
+        sigma = sigma if sigma else 1.0
         return 0.5 * (schur + schur.T) / sigma**2
+
+    def _probe_warp(self, G: F64, e: F64, c: F64) -> F64:
+        """`warp_points` at the probe points (full resolution), with the basis values there precomputed."""
+        P = self._probe @ G.T + np.outer(self._probe_phi @ c, e)
+        return P[:, :2] / P[:, 2:3]
+
+    def _observed(self, state: _State) -> bool:
+        """Whether the parallax `ρ* e` of `state` reaches `min_parallax_px` RMS (probe points)."""
+        return _rms(self._parallax_px(state.G, state.e, state.c)) >= self.config.min_parallax_px
 
     def _parallax_px(self, G: F64, e: F64, c: F64) -> F64:
         """Displacement (px) due to `ρ* e` at the probe points."""
-        planar = warp_points(G, np.zeros(3), self.basis, c, self._probe)
-        return np.linalg.norm(warp_points(G, e, self.basis, c, self._probe) - planar, axis=1)
+        return np.linalg.norm(self._probe_warp(G, e, c) - self._probe_warp(G, np.zeros(3), c), axis=1)
 
     def _epipole_angle(self, a: _State, b: _State) -> float:
         """Angle (degrees, sign-free) between two solutions' normalised epipoles `N₀ e`."""

@@ -7,7 +7,9 @@
   solved on the finest `tracking_levels` pyramid levels first, from the constant-velocity prediction when
   `config.base.predict_motion` is set and the last two frames converged: the last inter-frame motion
   `M = G_{k−1} G_{k−2}⁻¹` (current-image pixels) applied once more, `(G, e) = (M G_{k−1}, M e_{k−1})` (eq. (2):
-  `P_k = M P_{k−1}`); when that fails, again from the last good estimate over the whole pyramid.
+  `P_k = M P_{k−1}`); when that fails, again from the last good estimate over the whole pyramid. These warm-started
+  frames converge at `config.base.tracking_step_tolerance_px` (as the planar `Tracker`: the stream refines its
+  estimate again on every frame).
   The information on ρ* (given `e`) of each converged frame is added to `rho_information`; it grows only while
   the camera translates.
 - A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags);
@@ -113,10 +115,12 @@ class GeneralTracker:
         assert self._rho is not None
         G0, e0 = self._prediction()
         photometric = (self._gains, self._beta, self._scale)
-        result = problem.track(current, G0, e0, self._rho, *photometric,
-                               first_level=problem.config.base.tracking_levels - 1)
+        base = problem.config.base
+        tolerance = base.tracking_step_tolerance_px
+        result = problem.track(current, G0, e0, self._rho, *photometric, first_level=base.tracking_levels - 1,
+                               tolerance_px=tolerance)
         if not result.converged and (G0 is not self._G or len(result.iterations) < len(problem.levels)):
-            result = problem.track(current, self._G, self._e, self._rho, *photometric)
+            result = problem.track(current, self._G, self._e, self._rho, *photometric, tolerance_px=tolerance)
         return result
 
     def _prediction(self) -> tuple[F64, F64]:
