@@ -2,10 +2,17 @@
 
 Three processes: `ddvs serve` (320×240 frames, 200×150 ROI, decoupled law), a frame publisher (this script with
 `--publish`) and the receiver (this script), which sets the reference, starts the servo and timestamps every twist.
-Latency = twist arrival (receiver's `time.time_ns()`) − the frame's stamp (publisher's `time.time_ns()` just before
-`put`); the service stamps each twist with its frame's stamp. Frames follow a smooth 2-px circle around the
-reference (a tracking workload). At rates above the service's throughput it must keep up with the newest frame:
-latency stays bounded and the surplus frames are dropped, never queued.
+Latency = twist arrival (receiver's `time.time_ns()`) − the frame's stamp (publisher's `time.time_ns()` before it
+encodes and puts the frame); the service stamps each twist with its frame's stamp. Frames follow a smooth 2-px
+circle around the reference (a tracking workload). At rates above the service's throughput it must keep up with the
+newest frame: latency stays bounded and the surplus frames are dropped, never queued.
+
+Warm-up: the publisher first sends frames at 30 Hz until the service has answered `WARM_UP_FRAMES` of them (global
+initialisation and kernel compilation take seconds on a loaded machine), then measures; only frames stamped after
+that point count. Per frame the service's status gives its own time (`latency_ms.total`: payload taken → twist
+published, with `registration` inside it), so `transport = end to end − service` is everything outside the service
+loop: the publisher's encode and put, Zenoh both ways, the hand-off to the service's loop thread, the receiver's
+wake-up.
 
     .venv/bin/python benchmarks/bench_service.py [--rates 30 100 200] [--seconds 10] [--markdown]
 """
@@ -38,6 +45,7 @@ from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for ru
     Reply,
     SessionConfig,
     Time,
+    declare_publisher,
     decode_twist_stamped,
     dump,
     encode_image,
@@ -47,6 +55,8 @@ from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for ru
 from ddvs_service.protocol.upload import encode_upload  # noqa: E402
 
 W, H, F = 320, 240, 420.0
+WARM_UP_FRAMES = 30
+WARM_UP_LIMIT_S = 120.0
 DATASET = dataset_image("oxford/boat/img1.png")
 
 
@@ -70,23 +80,45 @@ def free_port() -> int:
 
 
 def publish(port: int, rate: float, seconds: float) -> None:
-    """Publisher process: frames at `rate` Hz for `seconds`, stamped with the wall clock just before `put`."""
+    """Publisher process: frames at 30 Hz until the service answered `WARM_UP_FRAMES` of them, then at `rate` Hz
+    for `seconds`, each stamped with the wall clock before it is encoded and put (the project's camera QoS).
+    Prints the measured frames, the wall clock at which measuring began and the median stamp → put-returned time."""
     img = scene()
     frames = [frame_at(img, k) for k in range(90)]
     keys = Keys("ddvs", "bench")
     session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
-    pub = session.declare_publisher(keys.key("camera_image"))
+    pub = declare_publisher(session, keys, "camera_image")
+    answered: list[None] = []  # one entry per status seen during the warm-up (appended by Zenoh's thread)
+    status = session.declare_subscriber(keys.key("servo_status"), lambda _sample: answered.append(None))
+    k = 0
+
+    def put_next() -> float:
+        nonlocal k
+        stamp = time.time_ns()
+        pub.put(encode_image(image_from_array(frames[k % 90], "mono8", Header(Time.from_ns(stamp), "camera"))))
+        k += 1
+        return (time.time_ns() - stamp) / 1e6
+
+    limit = time.monotonic() + WARM_UP_LIMIT_S
+    while len(answered) < WARM_UP_FRAMES:
+        if time.monotonic() > limit:
+            raise SystemExit(f"the service answered fewer than {WARM_UP_FRAMES} frames in {WARM_UP_LIMIT_S} s")
+        put_next()
+        time.sleep(1 / 30)
+    status.undeclare()
+    time.sleep(0.2)
+    start_ns = time.time_ns()
+    put_ms = []
     period = 1.0 / rate
     t0 = time.perf_counter()
-    k = 0
+    n = 0
     while time.perf_counter() - t0 < seconds:
-        header = Header(Time.from_ns(time.time_ns()), "camera")
-        pub.put(encode_image(image_from_array(frames[k % 90], "mono8", header)))
-        k += 1
-        time.sleep(max(0.0, t0 + k * period - time.perf_counter()))
+        put_ms.append(put_next())
+        n += 1
+        time.sleep(max(0.0, t0 + n * period - time.perf_counter()))
     pub.undeclare()
     session.close()
-    print(json.dumps({"published": k}))
+    print(json.dumps({"published": n, "start_ns": start_ns, "put_median_ms": float(np.median(put_ms))}))
 
 
 def command(session, keys: Keys, **kwargs: object) -> Reply:
@@ -95,7 +127,32 @@ def command(session, keys: Keys, **kwargs: object) -> Reply:
     raise RuntimeError("the service did not answer")
 
 
-def measure(rate: float, seconds: float) -> dict[str, float]:
+def summarise(rate: float, run: dict, statuses: list[dict], arrival_ms: dict[int, float]) -> dict:
+    """Figures of one rate from the measured frames' statuses (in stamp order) and their twists' latencies."""
+    e2e = np.array([arrival_ms[s["frame_stamp_ns"]] for s in statuses])
+    service = np.array([s["latency_ms"]["total"] for s in statuses])
+    reg = np.array([s["latency_ms"]["registration"] for s in statuses])
+    transport = e2e - service
+    tail = e2e >= np.percentile(e2e, 99)
+    half = len(e2e) // 2
+    counters = [s["counters"] for s in statuses]
+
+    def ms(x: np.ndarray) -> dict[str, float]:
+        return {"median": round(float(np.median(x)), 2), "p99": round(float(np.percentile(x, 99)), 2),
+                "max": round(float(x.max()), 1)}
+
+    return {
+        "rate_hz": rate, "published": run["published"], "twists": len(e2e),
+        "dropped": counters[-1]["dropped"] - counters[0]["dropped"], "end_to_end_ms": ms(e2e),
+        "service_ms": ms(service), "registration_ms": ms(reg), "transport_ms": ms(transport),
+        "publisher_put_median_ms": round(run["put_median_ms"], 2),
+        "tail_service_share": round(float(np.median(service[tail] / e2e[tail])), 2),
+        "median_halves_ms": [round(float(np.median(e2e[:half])), 2), round(float(np.median(e2e[half:])), 2)],
+        "states": sorted({s["state"] for s in statuses}), "load_average": round(os.getloadavg()[0], 2),
+    }
+
+
+def measure(rate: float, seconds: float) -> dict:
     port = free_port()
     state = tempfile.mkdtemp(prefix="ddvs-bench-")
     config = {
@@ -138,31 +195,15 @@ def measure(rate: float, seconds: float) -> dict[str, float]:
                      image={"format": "png", "data": encode_upload(img)})
         assert ok.ok, ok.error
         assert command(session, keys, op="start").ok
-        # warm-up: one second of frames at 30 Hz (global initialisation, kernel compilation), then measure
-        subprocess.run([sys.executable, __file__, "--publish", str(port), "--rate", "30", "--seconds", "1.5"],
-                       check=True, capture_output=True)
-        time.sleep(0.5)
-        with lock:
-            latencies.clear()
-        n_status = len(statuses)
         out = subprocess.run([sys.executable, __file__, "--publish", str(port), "--rate", str(rate),
                               "--seconds", str(seconds)], check=True, capture_output=True, text=True)
-        published = json.loads(out.stdout.strip().splitlines()[-1])["published"]
+        run = json.loads(out.stdout.strip().splitlines()[-1])
         time.sleep(0.5)
-        run_statuses = statuses[n_status:]
-        frame_stamps = {s["frame_stamp_ns"] for s in run_statuses}
-        with lock:  # twists answering a frame (the watchdog's zero twists carry no frame's stamp)
-            lat = np.array([ms for stamp, ms in latencies if stamp in frame_stamps])
-        reg = [s["latency_ms"]["registration"] for s in run_statuses]
-        half = len(lat) // 2
-        return {
-            "rate_hz": rate, "published": published, "twists": len(lat),
-            "median_ms": float(np.median(lat)), "p99_ms": float(np.percentile(lat, 99)),
-            "max_ms": float(lat.max()),
-            "first_half_median_ms": float(np.median(lat[:half])), "second_half_median_ms": float(np.median(lat[half:])),
-            "registration_median_ms": float(np.median(reg)) if reg else float("nan"),
-            "states": sorted({s["state"] for s in run_statuses}),
-        }
+        with lock:  # twists answering a measured frame (the watchdog's zero twists carry no frame's stamp)
+            arrival_ms = {stamp: ms for stamp, ms in latencies if stamp >= run["start_ns"]}
+        run_statuses = [s for s in statuses if s["frame_stamp_ns"] in arrival_ms]
+        run_statuses.sort(key=lambda s: s["frame_stamp_ns"])
+        return summarise(rate, run, run_statuses, arrival_ms)
     finally:
         for s in subs:
             s.undeclare()
@@ -186,12 +227,17 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.2f}", flush=True)
     rows = [measure(rate, args.seconds) for rate in args.rates]
     if args.markdown:
-        print("| input rate | frames published | twists | median | p99 | max | median 1st/2nd half | registration |")
-        print("|---|---|---|---|---|---|---|---|")
+        print("| input rate | frames published / answered / dropped | end to end median / p99 / max | service "
+              "median / p99 | registration median / p99 | transport median / p99 | p99 frames: service share | "
+              "median 1st / 2nd half | load |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['rate_hz']:.0f} Hz | {r['published']} | {r['twists']} | {r['median_ms']:.2f} ms | "
-                  f"{r['p99_ms']:.2f} ms | {r['max_ms']:.1f} ms | {r['first_half_median_ms']:.2f} / "
-                  f"{r['second_half_median_ms']:.2f} ms | {r['registration_median_ms']:.2f} ms |")
+            e, sv, rg, tr = r["end_to_end_ms"], r["service_ms"], r["registration_ms"], r["transport_ms"]
+            print(f"| {r['rate_hz']:.0f} Hz | {r['published']} / {r['twists']} / {r['dropped']} | "
+                  f"{e['median']:.2f} / {e['p99']:.2f} / {e['max']:.1f} ms | {sv['median']:.2f} / {sv['p99']:.2f} ms | "
+                  f"{rg['median']:.2f} / {rg['p99']:.2f} ms | {tr['median']:.2f} / {tr['p99']:.2f} ms | "
+                  f"{r['tail_service_share']:.0%} | {r['median_halves_ms'][0]:.2f} / {r['median_halves_ms'][1]:.2f} ms "
+                  f"| {r['load_average']:.2f} |")
     else:
         for r in rows:
             print(json.dumps(r))
