@@ -1,9 +1,10 @@
 """The long-running servo node: Zenoh in, camera twists out.
 
-One thread runs everything that touches the pipeline, in this order each turn: pending commands (queryable
-`servo/command`), the newest camera info, the newest frame (a `RingChannel(1)`: a slow turn skips frames, never
-queues them), then the watchdog (zero twist when no frame arrived within `frame_timeout_s` while servoing). Zenoh
-callbacks are not used for work, so they never block the session.
+One thread runs everything that touches the pipeline, in this order each turn: the oldest pending command
+(queryable `servo/command`), the newest camera info, the newest frame (only the newest is kept: a slow turn skips
+frames, never queues them), then the watchdog (zero twist when no frame arrived within `frame_timeout_s` while
+servoing). Zenoh callbacks only hand samples to that thread through an `Inbox` and wake it; they do no work, so they
+never block the session. Between turns the thread sleeps until something arrives or the watchdog is due.
 
 Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
 frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the node keeps running.
@@ -30,7 +31,6 @@ from ddvs_service.protocol import (
     InvalidMessage,
     Keys,
     Latency,
-    LatestSubscriber,
     ProtocolError,
     Reply,
     Roi,
@@ -50,13 +50,14 @@ from ddvs_service.protocol import (
 )
 from ddvs_service.protocol.security import warn_if_insecure
 from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.inbox import Inbox
 from ddvs_service.service.persistence import StateStore
 from ddvs_service.service.pipeline import ServoPipeline, StepResult
 from ddvs_service.service.state import ServoState, TransitionError
 
 log = logging.getLogger("ddvs.serve")
 ZERO6 = np.zeros(6)
-IDLE_SLEEP_S = 0.0005
+MAX_WAIT_S = 0.05  # longest sleep between turns: how soon a set `stop` is noticed
 RESUMING_STATES = (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
 
 
@@ -74,7 +75,7 @@ class ServoNode:
         self.keys = Keys(config.prefix, config.robot)
         intrinsics = config.intrinsics.to_intrinsics() if config.intrinsics else None
         self.pipeline = ServoPipeline(config, intrinsics)
-        self.counters = {"frames": 0, "received": 0, "rejected": 0}
+        self.counters = {"frames": 0, "rejected": 0}
         self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
         self._resume_state: ServoState | None = None
         self._reference_stamp_ns: int | None = None
@@ -83,7 +84,7 @@ class ServoNode:
         self._seq = 0
         self._last_status: Status | None = None
         self._persisted_rho: list[float] = []
-        self._lock = threading.Lock()
+        self._inbox = Inbox()
         self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float]] | None = None
         self._restore()
 
@@ -139,10 +140,10 @@ class ServoNode:
 
     def _serve(self, session: zenoh.Session, stop: threading.Event) -> None:
         k = self.keys
-        frames = LatestSubscriber(session, k.key("camera_image"))
-        infos = LatestSubscriber(session, k.key("camera_info"))
-        arrivals = session.declare_subscriber(k.key("camera_image"), self._count_arrival)
-        queries = session.declare_queryable(k.key("servo_command"))
+        inbox = self._inbox
+        inputs = [session.declare_subscriber(k.key("camera_image"), inbox.on_frame),
+                  session.declare_subscriber(k.key("camera_info"), inbox.on_info),
+                  session.declare_queryable(k.key("servo_command"), inbox.on_query)]
         self._pub = {name: declare_publisher(session, k, name)
                      for name in ("servo_twist", "servo_status", "servo_state", "servo_config", "servo_reference")}
         token = session.liveliness().declare_token(k.key("liveliness"))
@@ -152,35 +153,32 @@ class ServoNode:
         self._publish_state("started")
         try:
             while not stop.is_set():
-                busy = self._poll_queries(queries)
-                busy |= self._poll_info(infos)
-                busy |= self._poll_frame(frames)
+                inbox.wait(self._wait_timeout())
+                self._handle_query(inbox.take_query())
+                self._handle_info(inbox.take_info())
+                self._handle_frame(inbox.take_frame())
                 self._watchdog()
-                if not busy:
-                    time.sleep(IDLE_SLEEP_S)
         finally:
             self._publish_twist(ZERO6, Time.now())
             self._publish_state("stopped: service shutting down")
             token.undeclare()
-            queries.undeclare()
-            arrivals.undeclare()
-            frames.close()
-            infos.close()
+            for declared in inputs:
+                declared.undeclare()
             for pub in self._pub.values():
                 pub.undeclare()
-            log.info("service stopped", extra=fields(**self.counters))
+            log.info("service stopped", extra=fields(**self.counters, received=inbox.frames_received))
 
-    def _count_arrival(self, _sample: zenoh.Sample) -> None:
-        with self._lock:
-            self.counters["received"] += 1
+    def _wait_timeout(self) -> float:
+        """Seconds the loop may sleep: until the watchdog is due while a non-zero twist stands, `MAX_WAIT_S` at most."""
+        if self._zero_sent:
+            return MAX_WAIT_S
+        due = self._last_frame_t + self.config.frame_timeout_s - time.monotonic()
+        return min(max(due, 0.0), MAX_WAIT_S)
 
     # --- inputs -------------------------------------------------------------------------------------------------
-    def _poll_info(self, infos: LatestSubscriber) -> bool:
-        sample = infos.try_recv()
-        if sample is None:
-            return False
-        if self.config.intrinsics is not None:
-            return True  # configured intrinsics take precedence over camera info
+    def _handle_info(self, sample: zenoh.Sample | None) -> None:
+        if sample is None or self.config.intrinsics is not None:
+            return  # configured intrinsics take precedence over camera info
         try:
             intrinsics = decode_camera_info(sample.payload.to_bytes()).to_intrinsics()
             self.pipeline.set_intrinsics(intrinsics)
@@ -188,12 +186,10 @@ class ServoNode:
         except (ProtocolError, ValueError) as exc:
             self.counters["rejected"] += 1
             log.warning("camera info rejected", extra=fields(error=str(exc)))
-        return True
 
-    def _poll_frame(self, frames: LatestSubscriber) -> bool:
-        sample = frames.try_recv()
+    def _handle_frame(self, sample: zenoh.Sample | None) -> None:
         if sample is None:
-            return False
+            return
         t_arrival = time.perf_counter()
         self._last_frame_t = time.monotonic()
         try:
@@ -201,7 +197,7 @@ class ServoNode:
             image = _grey_view(msg.array, msg.encoding)
         except (ProtocolError, ValueError) as exc:
             self._reject_frame(f"frame rejected: {exc}")
-            return True
+            return
         t_decoded = time.perf_counter()
         if self._pending_reference is not None:
             self._adopt_next_frame(image, msg.header.stamp.to_ns())
@@ -209,7 +205,7 @@ class ServoNode:
             step = self.pipeline.step(image)
         except ValueError as exc:
             self._reject_frame(f"frame rejected: {exc}")
-            return True
+            return
         self.counters["frames"] += 1
         t_publish = time.perf_counter()
         self._publish_twist(step.twist, msg.header.stamp, msg.header.frame_id)
@@ -222,7 +218,6 @@ class ServoNode:
             "total": (t_done - t_arrival) * 1e3,
         }
         self._publish_status(step, msg.header.stamp.to_ns(), latency)
-        return True
 
     def _reject_frame(self, message: str) -> None:
         self.counters["rejected"] += 1
@@ -251,17 +246,15 @@ class ServoNode:
         self._publish_twist(ZERO6, Time.now())
 
     # --- commands -----------------------------------------------------------------------------------------------
-    def _poll_queries(self, queries: zenoh.Queryable) -> bool:
-        query = queries.try_recv()
+    def _handle_query(self, query: zenoh.Query | None) -> None:
         if query is None:
-            return False
+            return
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             reply = self.handle_command(payload)
             query.reply(query.key_expr, dump(reply))
         finally:
             query.drop()
-        return True
 
     def handle_command(self, payload: bytes) -> Reply:
         """Execute one JSON command; any failure is a `Reply.failure` naming the problem, with state unchanged."""
@@ -372,8 +365,7 @@ class ServoNode:
         )
 
     def _counters(self) -> Counters:
-        with self._lock:
-            received = self.counters["received"]
+        received = self._inbox.frames_received
         done = self.counters["frames"] + self.counters["rejected"]
         return Counters(frames=self.counters["frames"], dropped=max(received - done, 0),
                         rejected=self.counters["rejected"])
