@@ -1,5 +1,6 @@
 """Bilinear sampling of an image through a stack of homographies (the global initialiser renders its hypotheses and
-its rotated/scaled search templates with it, all of them in one launch).
+its rotated/scaled search templates with it, all of them in one launch), or at a list of points (the warp of a
+model that is not a homography, e.g. eq. (2)).
 
 `out[k, r, c] = src(H_k · [c + c0, r + r0, 1])` for the 3×3 matrices `H_k` (row-major in `h9[k, :]`; each maps output
 pixel coordinates shifted by the offset `(c0, r0)` to source pixel coordinates; 0-based pixel centres, u = column,
@@ -8,6 +9,8 @@ else 0 and `out` is 0 there.
 """
 
 import taichi as ti
+
+from kernels.sampling import bilinear
 
 
 @ti.kernel
@@ -41,3 +44,18 @@ def warp_homographies(
                 ok = 1.0
         out[k, r, c] = val
         valid[k, r, c] = ok
+
+
+@ti.kernel
+def sample_points(
+    src: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    points: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    valid: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
+    """`out[i] = src(points[i])` (bilinear; `points[i] = (u, v)`, source pixels) and `valid[i]` = 1 where all four
+    neighbours exist (else 0, `out` 0), as `warp_homographies`."""
+    for i in range(points.shape[0]):
+        val, ok = bilinear(src, points[i, 0], points[i, 1])
+        out[i] = val
+        valid[i] = ti.cast(ok, ti.f32)

@@ -131,6 +131,35 @@ def test_paper_saddle_initial_image_general_model_below_01_px() -> None:
     assert rms < 0.1, rms
 
 
+@pytest.mark.slow
+def test_oblique_saddle_rescued_by_general_model() -> None:
+    """The paper's saddle seen 37.5° obliquely (a sweep trial, wall texture): the planar fit of the correct match keeps
+    the parallax as residual (cost above max_cost: LOST with the planar refinement only); the general model of eq. (2)
+    converges from it, and the initialiser answers OK with the true warp `G p* + ρ*(p*) e`."""
+    from sim.freeflyer import render_view
+    from sim.ground_truth import ground_truth, parallax_map
+    from sim.surfaces import paper_saddle
+
+    saddle = paper_saddle()
+    raw = load_texture(TEXTURES[2], blur_sigma=0.0)
+    texture = load_texture(TEXTURES[2], blur_sigma=0.5 * raw.shape[1] / (saddle.extent[0] * CAM.fx))
+    d = Displacement(roll=np.radians(152.0), tilt=np.radians(37.5), tilt_axis=3.54, scale=0.85, shift=(83.5, -26.7))
+    T_cur = pose(*d.pose(PlanarScene(CAM, texture, depth=1.0), CENTRE))
+    ref = render_view(saddle, texture, CAM, np.eye(4))[0]
+    cur = render_view(saddle, texture, CAM, T_cur)[0]
+    planar_only = GlobalInitializer(GlobalInitConfig(general_max_cost=0.0)).initialize(ref, ROI, cur)
+    assert planar_only.status == "LOST" and "cost" in planar_only.reason
+    result = GlobalInitializer().initialize(ref, ROI, cur)
+    assert result.status == "OK", result.reason
+    assert result.winner is not None and result.winner.refinement.model == "general"
+    truth = ground_truth(saddle, CAM, np.eye(4), T_cur)
+    p = roi_grid(ROI)
+    rho = parallax_map(saddle, CAM, np.eye(4))[p[:, 1].astype(int), p[:, 0].astype(int)]
+    q = np.c_[p, np.ones(len(p))] @ truth.G.T + np.outer(rho, truth.e)
+    rms = np.sqrt(np.mean(np.sum((result.winner.refinement.detail.warp(p) - q[:, :2] / q[:, 2:]) ** 2, axis=1)))
+    assert rms < 0.1, rms
+
+
 def test_register_cli_init_global(scene: PlanarScene, tmp_path, capsys) -> None:
     """`ddvs register REF CUR --roi … --init global`: the global initialiser starts the planar registration from a
     half-turn away; an unrelated current image exits with status 1 and the initialiser's LOST reason."""

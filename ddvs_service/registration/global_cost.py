@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from kernels.global_warp import warp_homographies
+from kernels.global_warp import sample_points, warp_homographies
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -44,6 +44,16 @@ def sample_through(image: F32, H: F64, shape: tuple[int, int], offset: tuple[flo
     valid = np.empty_like(out)
     warp_homographies(np.ascontiguousarray(image, np.float32), out, valid, Hs, float(offset[0]), float(offset[1]))
     return (out[0], valid[0]) if single else (out, valid)
+
+
+def sample_at(image: F32, points: F64, shape: tuple[int, int]) -> tuple[F32, F32]:
+    """Sample `image` at the (N, 2) pixel points `(u, v)` (one Taichi launch), returned as (values, valid) arrays of
+    `shape` (N = h·w, row-major)."""
+    xy = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 2)
+    out = np.empty(len(xy), np.float32)
+    valid = np.empty_like(out)
+    sample_points(np.ascontiguousarray(image, np.float32), xy, out, valid)
+    return out.reshape(shape), valid.reshape(shape)
 
 
 def photometric_scores(template: F32, sampled: F32, valid: F32, kappa: float = 0.5) -> list[PhotometricScore]:

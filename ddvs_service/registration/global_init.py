@@ -21,7 +21,12 @@ start reproduces — searched only when stages 1–2 ended LOST, and its winner 
    in view first); `margin` = visible cost of the best *good* different solution (warp farther than `distinct_px`
    RMS over the ROI, visible cost ≤ `max_cost`) minus the winner's (1 − the winner's when there is none);
 4. status "LOST" when the winner's visible cost at the search level exceeds `max_cost`, its visible ROI fraction is
-   below `min_visible`, or the margin is below `min_margin` — never a confident wrong estimate.
+   below `min_visible`, or the margin is below `min_margin` — never a confident wrong estimate;
+5. a planar winner LOST only for its cost, with a search-level visible cost up to `general_max_cost`, is refined by
+   the general model of eq. (2) (`GeneralRefiner`): on a curved target a correct planar fit keeps the parallax as
+   residual (0.3–0.35 on the saddle seen 38° obliquely), which the general model removes (0.15–0.17 there), while
+   it does not converge from a wrong match. When it converges, the decision of 3–4 is taken again with the general
+   refinement in the winner's place, its quality being its own visible cost at full resolution.
 
 `G` maps reference pixels to current pixels (full-image 0-based pixel centres), det 1.
 """
@@ -35,7 +40,7 @@ from typing import Any, Literal, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ddvs_service.registration.global_cost import PhotometricScore, photometric_score, sample_through
+from ddvs_service.registration.global_cost import PhotometricScore, photometric_score, sample_at, sample_through
 from ddvs_service.registration.global_features import feature_homography
 from ddvs_service.registration.global_fourier_mellin import (
     FourierMellinConfig,
@@ -47,7 +52,7 @@ from ddvs_service.registration.global_fourier_mellin import (
     rotation_scale_stages,
     translation_hypotheses,
 )
-from ddvs_service.registration.global_scenes import rms_distance, roi_samples, warp_rms
+from ddvs_service.registration.global_scenes import rms_distance, roi_grid, roi_samples, warp_rms
 from ddvs_service.registration.global_screen import BatchScreen
 from kernels import backend
 
@@ -107,6 +112,28 @@ class PlanarRefiner:
         return [Refinement(G=result.G, sampled=sampled, valid=valid, model="planar", detail=result)]
 
 
+class GeneralRefiner:
+    """The general model of eq. (2) (`registration.general.GeneralRegistration.estimate`: planar refinement from
+    `G0`, then ρ* and e from several epipole directions) as a `Refiner`; its reference side is prepared on first
+    use. It solves its own `estimate_levels` (`first_level` and `rival` are not used) and returns nothing unless it
+    converged."""
+
+    def __init__(self, reference: F32, roi: Roi, config: Any = None) -> None:
+        self.reference, self.roi, self.config = reference, roi, config
+        self._problem: Any = None
+
+    def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]:
+        from ddvs_service.registration.general import GeneralConfig, GeneralRegistration
+
+        if self._problem is None:
+            self._problem = GeneralRegistration(self.reference, roi=self.roi, config=self.config or GeneralConfig())
+        result = self._problem.estimate(current, G0)
+        if not result.converged or not np.all(np.isfinite(result.G)):
+            return []
+        sampled, valid = sample_at(current, result.warp(roi_grid(self.roi)), (self.roi[3], self.roi[2]))
+        return [Refinement(G=result.G, sampled=sampled, valid=valid, model="general", detail=result)]
+
+
 @dataclass(frozen=True)
 class GlobalInitConfig:
     """Hypothesis sources, refinement budget and the LOST criteria (costs are `global_cost` units in [0, 1])."""
@@ -124,6 +151,7 @@ class GlobalInitConfig:
     tilt_seeds: int = 3  # stage 3: best distinct screened warps that seed foreshortened starts (0: no stage 3)
     tilt_factor: float = 0.75  # stage 3: compression (≈ cos 41°) of the ROI along 0°, 45°, 90°, 135° about its centre
     tilt_max_cost: float = 0.15  # max_cost for a winner started from stage 3 (more freedom, more chance fits)
+    general_max_cost: float = 0.4  # step 5: a planar winner LOST for a cost up to this is tried with eq. (2)
 
 
 @dataclass(frozen=True)
@@ -202,6 +230,7 @@ class ReferenceSide:
     refine: Refiner
     template: F32
     points: F64
+    general: Refiner
 
     def serves(self, reference: F32, roi: Roi) -> bool:
         return tuple(roi) == self.roi and np.array_equal(reference, self.reference)
@@ -225,7 +254,8 @@ class GlobalInitializer:
             self._side = ReferenceSide(
                 reference=ref.copy(), roi=tuple(roi), search=search,
                 screen=BatchScreen(search, roi, self.config.screen_iterations), refine=self.refiner_factory(ref, roi),
-                template=ref[y : y + h, x : x + w].copy(), points=roi_samples(roi))
+                template=ref[y : y + h, x : x + w].copy(), points=roi_samples(roi),
+                general=GeneralRefiner(ref, roi))
         return self._side
 
     def hypotheses(self, reference: F32, roi: Roi, current: F32) -> list[Hypothesis]:
@@ -289,7 +319,7 @@ class GlobalInitializer:
             result = _decide(candidates, quality, n_raw, side.points, cfg)
             if result.status == "OK" and result.cost <= cfg.early_accept_cost:
                 break
-        return result
+        return _general_check(result, side, cur, cfg)
 
 
 def _refine(side: ReferenceSide, cur: F32, G: F64, start: Hypothesis, first_level: int, rival: bool
@@ -302,6 +332,28 @@ def _refine(side: ReferenceSide, cur: F32, G: F64, start: Hypothesis, first_leve
 def _ranked(refined: dict[int, list[Candidate]], cfg: GlobalInitConfig) -> list[Candidate]:
     """Every refined candidate, best first (`_rank`)."""
     return sorted((c for cs in refined.values() for c in cs), key=lambda c: _rank(c.score, cfg))
+
+
+def _general_check(result: InitResult, side: ReferenceSide, cur: F32, cfg: GlobalInitConfig) -> InitResult:
+    """Step 5 of the module docstring: a planar winner LOST only for its cost (at most `general_max_cost`) is
+    refined by the general model; if that converges, the decision is taken again with it as the winner."""
+    best = result.winner
+    if (result.status == "OK" or best is None or best.refinement.model != "planar"
+            or not _max_cost(best, cfg) < result.cost <= cfg.general_max_cost or best.score.visible < cfg.min_visible):
+        return result
+    general = [Candidate(best.source, best.start_cost, r, photometric_score(side.template, r.sampled, r.valid))
+               for r in side.general(cur, best.refinement.G, 0)]
+    if not general:
+        return result
+    decided = _decide([*general, *result.candidates], general[0].score.cost_visible, result.hypotheses,
+                      side.points, cfg)
+    return decided if decided.status == "OK" else result
+
+
+def _max_cost(best: Candidate, cfg: GlobalInitConfig) -> float:
+    """The quality threshold of a winner: `tilt_max_cost` for a planar refinement of a stage-3 start, `max_cost`
+    otherwise (a general-model winner, already held to converging, is judged on its full-resolution cost)."""
+    return cfg.tilt_max_cost if best.source == FORESHORTENED and best.refinement.model == "planar" else cfg.max_cost
 
 
 def foreshortened(search: SearchPair, side: ReferenceSide, screened: list[tuple[float, F64]],
@@ -356,7 +408,7 @@ def _decide(candidates: list[Candidate], quality: float, n_raw: int, points: F64
                   and rms_distance(c.refinement.G, best.refinement.G, points) > cfg.distinct_px), None)
     margin = (rival.score.cost_visible if rival else 1.0) - best.score.cost_visible
     cost = quality
-    max_cost = cfg.tilt_max_cost if best.source == FORESHORTENED else cfg.max_cost
+    max_cost = _max_cost(best, cfg)
     if cost > max_cost:
         reason = f"best robust cost {cost:.3f} (visible pixels, search level) above the threshold {max_cost}"
     elif best.score.visible < cfg.min_visible:
