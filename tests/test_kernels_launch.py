@@ -42,3 +42,16 @@ def test_prepared_launch_refuses_non_contiguous_arrays_and_unknown_arguments() -
         Prepared(_scaled_sum, src, 1.0, np.zeros(8, dtype=np.float32), 1)
     with pytest.raises(TypeError, match="numpy arrays and scalars"):
         Prepared(_scaled_sum, np.zeros((8, 8), dtype=np.float32), "two", np.zeros(8, dtype=np.float32), 1)
+
+
+@ti.kernel
+def _uses_an_undefined_name(out: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    for i in range(out.shape[0]):
+        out[i] = not_defined_anywhere  # noqa: F821 - the compile error under test
+
+
+def test_compile_errors_still_name_the_file_line_and_source() -> None:
+    """kernels.backend replaces Taichi's source-position formatter; a compile error must still say where."""
+    with pytest.raises(Exception, match=r"(?s)test_kernels_launch\.py\", line \d+, in _uses_an_undefined_name.*"
+                                        r"not_defined_anywhere"):
+        _uses_an_undefined_name(np.zeros(4, dtype=np.float32))
