@@ -44,7 +44,7 @@ class FourierMellinConfig:
     min_search_roi: int = 32  # … unless the ROI would fall below this many pixels a side there
     grid_rotations: int = 18  # uniform rotation grid over 360° added to the log-polar peaks
     grid_scales: int = 3  # scales of the grid, log-spaced strictly inside scale_range
-    max_hypotheses: int = 12  # best translation peaks (by correlation height) scored at the search level
+    max_hypotheses: int = 36  # best translation peaks (by correlation height) scored at the search level
 
 
 @dataclass(frozen=True)

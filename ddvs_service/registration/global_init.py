@@ -8,7 +8,8 @@ start reproduces — searched only when stages 1–2 ended LOST, and its winner 
    rotation, scale 0.6–1.6, ROI anywhere with part of it outside the image), plus, when `config.feature_source` is
    'orb' or 'akaze', one RANSAC homography from features (`global_features.py`); ranked by the robust photometric
    cost (`global_cost.py`) at that level;
-2. the `max_screened` best distinct new hypotheses are screened by a planar refinement at the search level only,
+2. the `max_screened` (`max_screened_later` after stage 1) best distinct new hypotheses are screened by a planar
+   refinement at the search level only (`global_screen.py`, all of them at once),
    and the `final_refined` best distinct screened ones (winner and runner-up) are refined at full resolution by a
    `Refiner` – the planar direct engine (eqs. (4)–(5) with ρ* ≡ 0) by default, started one level above the search
    level. A refiner returns one or several refinements per start (hook for the general model of eq. (2) started
@@ -140,7 +141,8 @@ class GlobalInitConfig:
 
     fourier_mellin: FourierMellinConfig = field(default_factory=FourierMellinConfig)
     feature_source: Literal["none", "orb", "akaze"] = "none"
-    max_screened: int = 6  # distinct hypotheses screened by a planar refinement at the search level
+    max_screened: int = 6  # distinct new hypotheses of stage 1 screened by a planar refinement at the search level
+    max_screened_later: int = 8  # the same for stages 2 and 3 (searched only when stage 1 has no clear winner)
     screen_iterations: int = 8  # Gauss-Newton iterations per level of a screening
     final_refined: int = 2  # distinct screened candidates refined fully (winner and runner-up)
     distinct_px: float = 3.0  # two warps closer than this (RMS over the ROI) are the same solution
@@ -300,7 +302,8 @@ class GlobalInitializer:
             extra, n_raw = [], n_raw + len(raw)
             seen = [G for _, G, _ in screened]
             fresh = [hyp for hyp in raw if all(rms_distance(hyp.G, G, side.points) > cfg.distinct_px for G in seen)]
-            starts = _distinct([(hyp.G, hyp) for hyp in fresh], cfg.max_screened, side.points, cfg.distinct_px)
+            limit = cfg.max_screened if index == 0 else cfg.max_screened_later
+            starts = _distinct([(hyp.G, hyp) for hyp in fresh], limit, side.points, cfg.distinct_px)
             Gs = side.screen.run(search, [hyp.G for hyp in starts])
             screened += [(_rank(score, cfg), G, hyp) for score, G, hyp in zip(search.scores(Gs), Gs, starts,
                                                                               strict=True)]
