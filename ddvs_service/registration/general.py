@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from ddvs_service.lie import sl3_exp
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.general_basis import ParallaxBasis
-from ddvs_service.registration.images import F32, build_pyramid, checked_grey
+from ddvs_service.registration.images import F32, checked_grey
 from ddvs_service.registration.planar import (
     MAD_TO_SIGMA,
     PlanarRegistration,
@@ -48,6 +48,7 @@ from ddvs_service.registration.planar import (
     _symmetric_index,
     remaining_motion,
 )
+from kernels.launch import Prepared
 
 F64 = NDArray[np.float64]
 DEGENERATE_RCOND = 1e-9
@@ -217,6 +218,7 @@ class GeneralRegistration:
         self._params = np.zeros(params_size(self.basis.size), dtype=np.float32)
         self._work: dict[int, NDArray[np.float32]] = {}
         self._sym: dict[int, NDArray[np.intp]] = {}
+        self._steps: dict[tuple[int, bool], tuple[F32, Prepared]] = {}  # prepared launches, with their `cur`
         x, y, w, h = self.roi
         u, v = np.meshgrid(np.linspace(x, x + w - 1, 16), np.linspace(y, y + h - 1, 12))
         # Points where steps and parallax are measured (homogeneous, full resolution), and the basis there.
@@ -239,7 +241,7 @@ class GeneralRegistration:
             return self._failed(_State(planar.G if np.all(np.isfinite(planar.G)) else np.eye(3), np.zeros(3),
                                        np.zeros(self.basis.size), planar.S, planar.beta, None),
                                 f"planar stage failed: {planar.reason}", _flags_for(planar.reason))
-        pyramid = build_pyramid(current, len(self.levels))
+        pyramid = self._load_current(current, len(self.levels))
         levels = list(reversed(self.levels[: self.config.estimate_levels]))
         solutions: list[tuple[_State, list[int], bool, str]] = []
         for direction in START_DIRECTIONS:
@@ -264,7 +266,7 @@ class GeneralRegistration:
         rival = next((s for s, *_ in solutions[1:] if self._epipole_angle(best, s) > self.config.distinct_epipole_deg),
                      None)
         margin = (rival.cost - best.cost) / best.cost if rival is not None else float("inf")
-        H, _, _ = self._normal_equations(self.levels[0], self.reference[0], pyramid[0], best, with_rho=True)
+        H, _, _ = self._normal_equations(self.levels[0], pyramid[0], best, with_rho=True)
         info = self._rho_information(H, best.scale)
         result = self._result(best, [*planar.iterations, *iterations], converged, reason, info)
         result.margin = margin
@@ -287,7 +289,7 @@ class GeneralRegistration:
         `tolerance_px`: convergence tolerance at full resolution (`config.base.step_tolerance_px` by default; the
         tracker passes `tracking_step_tolerance_px`)."""
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
-        pyramid = build_pyramid(current, len(levels))
+        pyramid = self._load_current(current, len(levels))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
         state = _State(np.asarray(G0, dtype=np.float64).copy(), np.asarray(e0, dtype=np.float64).copy(),
                        np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0)
@@ -328,20 +330,30 @@ class GeneralRegistration:
         for i, row in enumerate(self.basis.B):
             p[k.PARAMS_BASIS + i * k.MAX_MONOMIALS : k.PARAMS_BASIS + i * k.MAX_MONOMIALS + n_mono] = row
 
+    def _load_current(self, current: F32, n_levels: int) -> list[F32]:
+        """The first `n_levels` levels of the current image's pyramid, in the planar engine's fixed buffers (this
+        object runs the planar stage on the same buffers), so that the step launches can be prepared once."""
+        return self.planar._load_current(current, n_levels)
+
     def _normal_equations(
-        self, level: Any, ref: F32, cur: F32, state: _State, with_rho: bool
+        self, level: Any, cur: F32, state: _State, with_rho: bool
     ) -> tuple[F64, F64, NDArray[np.float64]]:
-        """One kernel launch at the state: (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr², median |r|])."""
+        """One kernel launch at the state on the current level image `cur`: (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr²,
+        median |r|]). The launch is prepared once per (level, `with_rho`, buffer) (`kernels.launch.Prepared`)."""
         from kernels.general_step import general_step, n_acc, n_columns, work_size
 
         n = n_columns(self.basis.size, with_rho, *self.grid)
         if n not in self._work:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
             self._sym[n] = _symmetric_index(n)
-        work = self._work[n]
+        key = (level.index, with_rho)
+        if key not in self._steps or self._steps[key][0] is not cur:
+            self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
+                                              self._work[n], self.basis.degree, self.basis.size, with_rho,
+                                              *self.grid))
         self._fill(level, level.D @ state.G @ level.D_inv, level.D @ state.e, state)
-        general_step(ref, cur, self._params, work, self.basis.degree, self.basis.size, with_rho, *self.grid)
-        acc = work[: n_acc(n)].astype(np.float64)
+        self._steps[key][1]()
+        acc = self._work[n][: n_acc(n)].astype(np.float64)
         nt = n * (n + 1) // 2
         return acc[self._sym[n]], acc[nt : nt + n], acc[nt + n :]
 
@@ -358,7 +370,6 @@ class GeneralRegistration:
         cfg = self.config.base
         fine = cfg.step_tolerance_px if tolerance_px is None else tolerance_px
         tolerance = fine if level.index == 0 else cfg.coarse_step_tolerance_px
-        ref, cur = self.reference[level.index], pyramid[level.index]
         nr = self.basis.size if free_rho else 0
         ng = self.grid[0] * self.grid[1]
         D, D_inv, N, N_inv = level.D, level.D_inv, level.N, level.N_inv
@@ -367,7 +378,7 @@ class GeneralRegistration:
         steps: list[float] = []
         for it in range(1, cfg.max_iterations + 1):
             with_information = information and not free_rho and level.index == 0 and it == 1
-            H, g, stats = self._normal_equations(level, ref, cur, state, with_rho=free_rho or with_information)
+            H, g, stats = self._normal_equations(level, pyramid[level.index], state, free_rho or with_information)
             n_valid, n_inliers, sum_r2, median = stats
             if n_valid < cfg.min_valid_ratio * level.n_pixels:
                 return it, False, (f"diverged at level {level.index}: only {n_valid / level.n_pixels:.0%} of the ROI "
