@@ -1,14 +1,18 @@
 """Tracking-frame time of the general registration (eq. (2), ρ* fixed: G, e, gain, bias) against the planar tracker,
 same frames, same run: 200×150 ROI of the paper's saddle rendered along small consecutive camera motions.
 
-Run: `.venv/bin/python benchmarks/bench_general.py [--frames 60]`. Prints median / p90 ms per frame for both paths,
-and their ratio (the general frame includes its pass that accumulates the information on ρ*).
+Run: `.venv/bin/python benchmarks/bench_general.py [--frames 60]`. Prints median / p90 ms and iterations per frame
+for both paths (timed frame by frame in turn), their ratio and the load average (the general frame includes the
+information on ρ* it accumulates).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
+from collections.abc import Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -38,15 +42,20 @@ def frames(n: int) -> list[np.ndarray]:
     return out
 
 
-def timed(track, images: list[np.ndarray]) -> np.ndarray:
-    times = []
+def timed(tracks: dict[str, Callable[[np.ndarray], Any]], images: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """ms per frame and iterations per frame of each tracker, frame by frame in turn (so that the VM's speed drift
+    hits both alike)."""
+    times: dict[str, list[float]] = {name: [] for name in tracks}
+    iterations: dict[str, list[int]] = {name: [] for name in tracks}
     for image in images:
-        t0 = time.perf_counter()
-        result = track(image)
-        times.append(time.perf_counter() - t0)
-        if not result.converged:
-            raise RuntimeError(f"benchmark frame failed: {result.reason}")
-    return 1e3 * np.array(times)
+        for name, track in tracks.items():
+            t0 = time.perf_counter()
+            result = track(image)
+            times[name].append(time.perf_counter() - t0)
+            if not result.converged:
+                raise RuntimeError(f"benchmark frame failed ({name}): {result.reason}")
+            iterations[name].append(sum(result.iterations))
+    return {name: np.c_[1e3 * np.array(times[name]), iterations[name]] for name in tracks}
 
 
 def main() -> None:
@@ -62,13 +71,17 @@ def main() -> None:
     planar.reset(ground_truth(saddle, INTR, np.eye(4), T0).G)
     general = GeneralTracker(reference, ROI)
     general.track(images[0])  # ρ* estimated here (multi-start), not timed
-    for track in (planar.track, general.track):  # warm-up: compile every kernel variant
-        timed(track, images[:2])
-    t_planar = timed(planar.track, images)
-    t_general = timed(general.track, images)
-    for name, t in (("planar Tracker", t_planar), ("GeneralTracker", t_general)):
-        print(f"{name:24s} median {np.median(t):6.2f} ms  p90 {np.percentile(t, 90):6.2f} ms")
-    print(f"ratio general/planar (median): {np.median(t_general) / np.median(t_planar):.2f}")
+    tracks = {"planar Tracker": planar.track, "GeneralTracker": general.track}
+    timed(tracks, images[:2])  # warm-up: compile every kernel variant
+    load = os.getloadavg()[0]
+    runs = timed(tracks, images)
+    for name, run in runs.items():
+        t = run[:, 0]
+        print(f"{name:24s} median {np.median(t):6.2f} ms  p90 {np.percentile(t, 90):6.2f} ms  "
+              f"iterations/frame {np.mean(run[:, 1]):.2f}")
+    ratio = np.median(runs["GeneralTracker"][:, 0]) / np.median(runs["planar Tracker"][:, 0])
+    print(f"ratio general/planar (median): {ratio:.2f}  (load average {load:.2f} before, "
+          f"{os.getloadavg()[0]:.2f} after)")
 
 
 if __name__ == "__main__":
