@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -37,6 +38,7 @@ from ddvs_service.protocol import (
 )
 from ddvs_service.protocol.ros import Header, Time
 from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.inbox import Inbox
 
 W, H, F = 320, 240, 420.0
 BOAT = dataset_image("oxford/boat/img1.png")
@@ -333,3 +335,26 @@ def test_general_model_serves_a_planar_target(tmp_path: Path) -> None:
         assert converge(op, img)["state"] == "CONVERGED"
     persisted = json.loads((tmp_path / "state" / "state.json").read_text())
     assert "rho_coeffs" in persisted
+
+
+def test_inbox_keeps_the_newest_frame_queues_commands_and_wakes_the_loop() -> None:
+    """The hand-off from Zenoh callbacks: newest frame only (counted), commands in order and bounded, and `wait`
+    returns as soon as something arrives rather than at its timeout."""
+    inbox = Inbox(max_queries=2)
+    inbox.on_frame("frame 1")  # the inbox stores whatever the callback hands it
+    inbox.on_frame("frame 2")
+    assert inbox.take_frame() == "frame 2" and inbox.take_frame() is None
+    assert inbox.frames_received == 2
+    for q in ("q1", "q2", "q3"):
+        inbox.on_query(q)
+    assert [inbox.take_query(), inbox.take_query(), inbox.take_query()] == ["q2", "q3", None]
+    inbox.on_info("info")
+    assert inbox.take_info() == "info" and inbox.take_info() is None
+
+    t0 = time.monotonic()
+    inbox.wait(0.05)  # nothing pending: sleeps the whole timeout
+    assert time.monotonic() - t0 >= 0.04
+    threading.Timer(0.05, inbox.on_frame, args=("frame 3",)).start()
+    t0 = time.monotonic()
+    inbox.wait(10.0)
+    assert time.monotonic() - t0 < 5.0 and inbox.take_frame() == "frame 3"
