@@ -27,7 +27,8 @@ start reproduces — searched only when stages 1–2 ended LOST, and its winner 
    the general model of eq. (2) (`GeneralRefiner`): on a curved target a correct planar fit keeps the parallax as
    residual (0.3–0.35 on the saddle seen 38° obliquely), which the general model removes (0.15–0.17 there), while
    it does not converge from a wrong match. When it converges, the decision of 3–4 is taken again with the general
-   refinement in the winner's place, its quality being its own visible cost at full resolution.
+   refinement in the winner's place, its quality being its own visible cost at full resolution; an OK result's `G`
+   is then the planar part `G` of eq. (2).
 
 `G` maps reference pixels to current pixels (full-image 0-based pixel centres), det 1.
 """
@@ -403,7 +404,8 @@ def _decide(candidates: list[Candidate], quality: float, n_raw: int, points: F64
             ) -> InitResult:
     """Winner, margin to the best *good* different solution, and the LOST criteria of the module docstring.
     `quality`: the winner's visible cost at the search level (coarse: sub-pixel model errors, e.g. the parallax a
-    planar warp leaves on a curved target, and aliasing weigh less there than a wrong match)."""
+    planar warp leaves on a curved target, and aliasing weigh less there than a wrong match); for the general-model
+    winner of step 5, its own visible cost at full resolution."""
     if not candidates:
         return InitResult("LOST", None, 1.0, 0.0, "no hypothesis could be refined", candidates, n_raw)
     best = candidates[0]
