@@ -14,8 +14,9 @@ For start `k` with homography `G_k` (level pixels, reference → current), gain 
 - Huber weight `w(r / σ)` (k = 1.345; plain least squares when `σ ≤ 0`), 0 where a reference tap or a warped
   sample is missing.
 
-Outputs: `sums[k]` = upper triangle (row-major) of `Jᵀ W J` (55), `Jᵀ W r` (10), the valid pixel count and `Σ r²`
-over the valid pixels; `abs_r[k, i]` = |r| of ROI pixel `i` (row-major) or −1 where it is not valid (the caller
+Output row `out[k]` (one array, one launch argument): `N_SUMS` sums — the upper triangle (row-major) of `Jᵀ W J`
+(55), `Jᵀ W r` (10), the valid pixel count and `Σ r²` over the valid pixels — then `out[k, N_SUMS + i]` = |r| of ROI
+pixel `i` (row-major) or −1 where it is not valid (the caller
 takes the median for the next robust scale).
 """
 
@@ -90,10 +91,9 @@ def screen_step(
     cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
     starts: ti.types.ndarray(dtype=ti.f32, ndim=2),
     frame: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    sums: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    abs_r: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
 ):
-    """Fill `sums[k]` and `abs_r[k]` for every start `k` of `starts` (K × `N_START`); see the module docstring.
+    """Fill `out[k]` for every start `k` of `starts` (K × `N_START`); see the module docstring.
     Each start is one thread's work; its accumulation loop only loads and sums in registers (vectorised), and a
     second loop stores |r|."""
     u0 = ti.cast(frame[FRAME_ROI + 0], ti.i32)
@@ -140,6 +140,6 @@ def screen_step(
                     acc[N_TRIANGLE + N_UNKNOWNS + 1] += valid * r * r
                 for u in range(u0, u1 + 1):
                     ok, r, _gx, _gy, _c0 = pixel_terms(ref, cur, G, gain, bias, u, v)
-                    abs_r[k, (v - v0) * width + (u - u0)] = ti.select(ok, ti.abs(r), -1.0)
+                    out[k, N_SUMS + (v - v0) * width + (u - u0)] = ti.select(ok, ti.abs(r), -1.0)
             for i in ti.static(range(N_SUMS)):
-                sums[k, i] = acc[i]
+                out[k, i] = acc[i]

@@ -55,6 +55,8 @@ MAX_STEP_FRACTION = 0.25  # largest corner motion of one update, fraction of the
 SCALE_FLOOR = 0.5  # grey levels
 DEGENERATE_RCOND = 1e-9  # reciprocal condition of the diagonally scaled normal matrix below this: degenerate
 _UPPER = np.triu_indices(N_UNKNOWNS)
+_GENERATORS_FLAT = SL3_GENERATORS.reshape(N_GEOMETRIC, 9)
+_EYE = np.eye(3)
 if not np.array_equal(np.array(GENERATORS, dtype=np.float64).reshape(8, 3, 3), SL3_GENERATORS):
     raise AssertionError("kernels.global_screen.GENERATORS and lie.SL3_GENERATORS disagree")
 
@@ -98,12 +100,10 @@ def _project(G: F64, points: F64) -> F64:
 def retraction(x: F64) -> F64:
     """`E(X) = I + X + X²/2 + X³/6 + X⁴/24` for `X = Σ xᵢ Aᵢ` of each row of `x` (K, 8): a stack (K, 3, 3) that
     agrees with `exp(X)` to fourth order (first omitted term `X⁵/120`: ≈ 3e-4 at ‖X‖ = 0.5)."""
-    X = np.tensordot(x, SL3_GENERATORS, axes=1)
-    E = np.broadcast_to(np.eye(3), X.shape).copy()
-    term = E.copy()
-    for k in range(1, 5):
-        term = term @ X / k
-        E += term
+    X = (x @ _GENERATORS_FLAT).reshape(-1, 3, 3)
+    E = _EYE + X / 4.0  # Horner: I + X (I + X/2 (I + X/3 (I + X/4)))
+    for k in (3.0, 2.0, 1.0):
+        E = _EYE + (X @ E) / k
     return E
 
 
@@ -161,8 +161,7 @@ class BatchScreen:
         K = len(G_l)
         active = ~failed
         steps: list[list[float]] = [[] for _ in range(K)]
-        sums = np.empty((K, N_SUMS), np.float32)
-        abs_r = np.empty((K, level.n_pixels), np.float32)
+        out = np.empty((K, N_SUMS + level.n_pixels), np.float32)
         limit = MAX_STEP_FRACTION * level.size
         for it in range(self.iterations):
             idx = np.flatnonzero(active)
@@ -170,8 +169,8 @@ class BatchScreen:
                 break
             params[idx, START_G : START_G + 9] = G_l[idx].reshape(-1, 9)
             batch = np.ascontiguousarray(params[idx])
-            screen_step(ref, cur, batch, level.frame, sums[: idx.size], abs_r[: idx.size])
-            acc = sums[: idx.size].astype(np.float64)
+            screen_step(ref, cur, batch, level.frame, out[: idx.size])
+            acc = out[: idx.size, :N_SUMS].astype(np.float64)
             n_valid = acc[:, N_TRIANGLE + N_UNKNOWNS]
             H = np.zeros((idx.size, N_UNKNOWNS, N_UNKNOWNS))
             H[:, _UPPER[0], _UPPER[1]] = acc[:, :N_TRIANGLE]
@@ -180,7 +179,7 @@ class BatchScreen:
             stop = n_valid < MIN_VALID_RATIO * level.n_pixels
             if it == 0:
                 stop |= _degenerate(H)
-            ordered = np.sort(abs_r[: idx.size], axis=1)  # invalid pixels (−1) first
+            ordered = np.sort(out[: idx.size, N_SUMS:], axis=1)  # invalid pixels (−1) first
             n_invalid = level.n_pixels - n_valid.astype(int)
             middle = np.clip(n_invalid + np.maximum(n_valid.astype(int) - 1, 0) // 2, 0, level.n_pixels - 1)
             sigma = np.maximum(MAD_TO_SIGMA * ordered[np.arange(idx.size), middle], SCALE_FLOOR)
