@@ -125,8 +125,8 @@ class Service:
         cfg_file = tmp_path / "serve.json"
         cfg_file.write_text(config.model_dump_json())
         env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
-        self.proc = subprocess.Popen([sys.executable, "-m", "ddvs_service.cli", "serve", "--config", str(cfg_file)],
-                                     stderr=subprocess.PIPE, text=True, env=env)
+        self.proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "ddvs_service.cli", "serve",
+                                      "--config", str(cfg_file)], stderr=subprocess.PIPE, text=True, env=env)
 
     def wait_ready(self, op: Operator, timeout: float = 60.0) -> None:
         deadline = time.monotonic() + timeout
@@ -145,9 +145,10 @@ class Service:
             self.proc.send_signal(signal.SIGTERM)
         try:
             code = self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            raise
+        except subprocess.TimeoutExpired as exc:
+            self.proc.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+            _, stderr = self.proc.communicate(timeout=30)
+            raise AssertionError(f"the service ignored SIGTERM for 30 s; its stacks:\n{stderr[-8000:]}") from exc
         return code, self.proc.stderr.read() if self.proc.stderr else ""
 
 
