@@ -279,7 +279,7 @@ def pixel_terms(ref: ti.template(), buf: ti.template(), span: ti.template(), gai
     cr = buf[sc + u + 1]
     cu = buf[su + u]
     cd = buf[sd + u]
-    ok = ref_ok and ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd))) > MASK_LIMIT
+    ok = ref_ok & (ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd))) > MASK_LIMIT)
     gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
     r = gain * c0 + beta - ir
     gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)

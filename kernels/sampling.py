@@ -35,7 +35,7 @@ def bilinear(img: ti.template(), x: ti.f32, y: ti.f32):
     selected, so that a pixel loop calling it can be vectorised."""
     h = img.shape[0]
     w = img.shape[1]
-    inside = x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0
+    inside = (x >= 0.0) & (y >= 0.0) & (x <= w - 1.0) & (y <= h - 1.0)  # `and` would be a branch
     xc = ti.min(ti.max(x, 0.0), w - 1.0)
     yc = ti.min(ti.max(y, 0.0), h - 1.0)
     x0 = ti.max(ti.min(ti.cast(xc, ti.i32), w - 2), 0)  # xc ≥ 0: truncation is the floor
