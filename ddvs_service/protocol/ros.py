@@ -426,8 +426,7 @@ def encode_twist_stamped(msg: TwistStamped) -> bytes:
     """CDR payload of a `geometry_msgs/TwistStamped`."""
     w = CdrWriter()
     _write_header(w, msg.header)
-    for value in (*msg.linear, *msg.angular):
-        w.float64(float(value))
+    w.float64_array((*msg.linear, *msg.angular), length=6)  # linear then angular, one aligned block
     return w.finish()
 
 
