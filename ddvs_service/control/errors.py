@@ -47,13 +47,24 @@ def homography_euclidean(G: ArrayLike, K: ArrayLike) -> F64:
     return np.linalg.solve(K, G @ K)
 
 
+def _normalised(G: ArrayLike, e: ArrayLike, K: ArrayLike) -> tuple[F64, F64]:
+    """`H` of (8) and the normalised epipole `e' = K⁻¹ e`, the inputs validated once."""
+    K = _matrix3(K, "K")
+    K_inv = np.linalg.inv(K)
+    return K_inv @ _matrix3(G, "G") @ K, K_inv @ _vector3(e, "e")
+
+
+def _translation(H: F64, e_n: F64, rho: float, m_star: F64) -> F64:
+    """`(H − I) m*' + ρ* e'` on validated inputs (see `translation_error`)."""
+    return H @ m_star - m_star + rho * e_n
+
+
 def translation_error(H: ArrayLike, e_n: ArrayLike, rho: float, m_star: ArrayLike) -> F64:
     """Translational error of (7)/(13): `ε_v = (H − I) m*' + ρ* e'` with `e' = K⁻¹ e` the normalised epipole.
 
     Under the Euclidean scaling (`H = R + t n*ᵀ`, `e' = t`, `X = R X* + t`) it equals `(R − I) m*' + t/z*`.
     """
-    H = _matrix3(H, "H")
-    return (H - np.eye(3)) @ _vector3(m_star, "m_star") + _scalar(rho, "rho") * _vector3(e_n, "e_n")
+    return _translation(_matrix3(H, "H"), _vector3(e_n, "e_n"), _scalar(rho, "rho"), _vector3(m_star, "m_star"))
 
 
 def rotation_vector_dvs(H: ArrayLike) -> F64:
@@ -73,16 +84,16 @@ def rotation_vector_dvs(H: ArrayLike) -> F64:
 
 def dvs_error(G: ArrayLike, e: ArrayLike, rho: float, K: ArrayLike, m_star: ArrayLike) -> F64:
     """(7) full DVS error `ε = [(H − I) m*' + ρ* e'; θ μ]` (6-vector), with (8)–(11)."""
-    H = homography_euclidean(G, K)
-    e_n = np.linalg.solve(_matrix3(K, "K"), _vector3(e, "e"))
-    return np.concatenate([translation_error(H, e_n, rho, m_star), rotation_vector_dvs(H)])
+    H, e_n = _normalised(G, e, K)
+    eps_v = _translation(H, e_n, _scalar(rho, "rho"), _vector3(m_star, "m_star"))
+    return np.concatenate([eps_v, rotation_vector_dvs(H)])
 
 
 def reduced_error(G: ArrayLike, e: ArrayLike, rho: float, K: ArrayLike, m_star: ArrayLike) -> F64:
     """(13) reduced DVS error `ε' = [(H − I) m*' + ρ* e'; vex(H − Hᵀ)]` (6-vector); `ε'_ω ≈ 2 θ μ` near 0."""
-    H = homography_euclidean(G, K)
-    e_n = np.linalg.solve(_matrix3(K, "K"), _vector3(e, "e"))
-    return np.concatenate([translation_error(H, e_n, rho, m_star), vex(H - H.T)])
+    H, e_n = _normalised(G, e, K)
+    eps_v = _translation(H, e_n, _scalar(rho, "rho"), _vector3(m_star, "m_star"))
+    return np.concatenate([eps_v, vex(H - H.T)])
 
 
 def decoupling_matrix(m_star: ArrayLike, c_star: ArrayLike) -> F64:

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.control.errors import decoupled_error, dvs_error, reduced_error
+from ddvs_service.control.errors import decoupling_matrix, dvs_error, reduced_error
 from ddvs_service.control.stability import LAWS, check_configuration
 
 F64 = NDArray[np.float64]
@@ -97,6 +97,7 @@ class ControlLaw:
         self.c_star = np.asarray(config.c_star if config.c_star is not None else self.m_star, dtype=np.float64)
         self.gains = np.asarray(config.gain_vector, dtype=np.float64)
         check_configuration(config.law, self.gains, self.m_star, self.c_star, config.q_star, config.z_star)
+        self._M = decoupling_matrix(self.m_star, self.c_star)  # (15), constant
 
     def error(self, G: ArrayLike, e: ArrayLike, rho: float) -> F64:
         """The configured law's error: (7), (13) or (16), 6-vector."""
@@ -104,7 +105,7 @@ class ControlLaw:
             return dvs_error(G, e, rho, self.K, self.m_star)
         if self.config.law == "dvs_reduced":
             return reduced_error(G, e, rho, self.K, self.m_star)
-        return decoupled_error(G, e, rho, self.K, self.m_star, self.c_star)
+        return self._M @ reduced_error(G, e, rho, self.K, self.m_star)  # (14)/(16): decoupled_error, M kept
 
     def compute(self, G: ArrayLike, e: ArrayLike, rho_at_control_point: float) -> ControlOutput:
         """Twist for the estimate `G` (SL(3), pixels), epipole `e` (pixels, homogeneous) and parallax `ρ*` of the
