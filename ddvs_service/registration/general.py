@@ -45,8 +45,8 @@ from ddvs_service.registration.planar import (
     MAD_TO_SIGMA,
     PlanarRegistration,
     Roi,
-    _symmetric_index,
     remaining_motion,
+    symmetric_index,
 )
 from kernels.launch import Prepared
 
@@ -333,7 +333,7 @@ class GeneralRegistration:
     def _load_current(self, current: F32, n_levels: int) -> list[F32]:
         """The first `n_levels` levels of the current image's pyramid, in the planar engine's fixed buffers (this
         object runs the planar stage on the same buffers), so that the step launches can be prepared once."""
-        return self.planar._load_current(current, n_levels)
+        return self.planar.load_current(current, n_levels)
 
     def _normal_equations(
         self, level: Any, cur: F32, state: _State, with_rho: bool
@@ -345,7 +345,7 @@ class GeneralRegistration:
         n = n_columns(self.basis.size, with_rho, *self.grid)
         if n not in self._work:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
-            self._sym[n] = _symmetric_index(n)
+            self._sym[n] = symmetric_index(n)
         key = (level.index, with_rho)
         if key not in self._steps or self._steps[key][0] is not cur:
             self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,

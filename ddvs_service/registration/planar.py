@@ -84,7 +84,7 @@ def _project(G: F64, pts: F64) -> F64:
     return q[:2] / q[2]
 
 
-def _symmetric_index(n: int) -> NDArray[np.intp]:
+def symmetric_index(n: int) -> NDArray[np.intp]:
     """`idx[i, j]`: position of `H[min(i, j), max(i, j)]` in the kernel's row-major upper triangle."""
     i, j = np.minimum.outer(np.arange(n), np.arange(n)), np.maximum.outer(np.arange(n), np.arange(n))
     return i * n - i * (i - 1) // 2 + (j - i)
@@ -135,7 +135,7 @@ class PlanarRegistration:
             raise AssertionError("parameter layout and kernel column order disagree")
         self._n = self.layout.size
         self._nacc = n_acc(self._n)
-        self._sym = _symmetric_index(self._n)
+        self._sym = symmetric_index(self._n)
         self._sl_G, self._sl_S, self._sl_b = self.layout.slice("G"), self.layout.slice("S"), self.layout.slice("beta")
         self._robust_code = ROBUST_CODES[config.robust]
         self._params = np.zeros(PARAMS_GAINS + self.grid[0] * self.grid[1], dtype=np.float32)
@@ -207,7 +207,7 @@ class PlanarRegistration:
         G = np.eye(3) if G0 is None else sl3_normalize(np.asarray(G0, dtype=np.float64).reshape(3, 3))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
         state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0)
-        pyramid = self._load_current(cur, len(levels))
+        pyramid = self.load_current(cur, len(levels))
         iterations: list[int] = []
         converged, reason = False, ""
         for level in reversed(levels):
@@ -241,9 +241,10 @@ class PlanarRegistration:
             scale=float("nan") if state.scale is None else state.scale,
         )
 
-    def _load_current(self, cur: F32, n_levels: int) -> list[F32]:
-        """Copy `cur` into the fixed level-0 buffer and downsample it into the next `n_levels − 1` buffers
-        (`images.build_pyramid`'s filter); returns the buffers."""
+    def load_current(self, cur: F32, n_levels: int) -> list[F32]:
+        """Copy `cur` (checked, reference-sized float32) into the fixed level-0 buffer and downsample it into the next
+        `n_levels − 1` buffers (`images.build_pyramid`'s filter); returns the buffers, which the next call overwrites.
+        An engine sharing this object's buffers (the general model's) prepares its launches on them too."""
         from kernels.pyramid import downsample2
 
         np.copyto(self._current[0], cur)
