@@ -101,9 +101,11 @@ def retraction(x: F64) -> F64:
     """`E(X) = I + X + X²/2 + X³/6 + X⁴/24` for `X = Σ xᵢ Aᵢ` of each row of `x` (K, 8): a stack (K, 3, 3) that
     agrees with `exp(X)` to fourth order (first omitted term `X⁵/120`: ≈ 3e-4 at ‖X‖ = 0.5)."""
     X = (x @ _GENERATORS_FLAT).reshape(-1, 3, 3)
-    E = _EYE + X / 4.0  # Horner: I + X (I + X/2 (I + X/3 (I + X/4)))
-    for k in (3.0, 2.0, 1.0):
-        E = _EYE + (X @ E) / k
+    E = np.broadcast_to(_EYE, X.shape).copy()
+    term = E.copy()
+    for k in range(1, 5):
+        term = term @ X / k
+        E += term
     return E
 
 
