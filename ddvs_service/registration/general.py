@@ -42,6 +42,7 @@ from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.images import F32, checked_grey
 from ddvs_service.registration.planar import (
+    DEGENERATE_RCOND,
     MAD_TO_SIGMA,
     PlanarRegistration,
     Roi,
@@ -51,7 +52,6 @@ from ddvs_service.registration.planar import (
 from kernels.launch import Prepared
 
 F64 = NDArray[np.float64]
-DEGENERATE_RCOND = 1e-9
 # Starting directions of N e (normalised, one per ± pair): lateral, diagonal, forward and oblique translations.
 START_DIRECTIONS = np.array(
     [[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1], [-1, 0, 1], [0, 1, 1], [0, -1, 1]],
@@ -224,12 +224,7 @@ class GeneralRegistration:
         # Points where steps and parallax are measured (homogeneous, full resolution), and the basis there.
         self._probe = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
         self._probe_phi = self.basis.values(self._probe[:, :2])
-        self.N0 = self._norm_matrix(self.levels[0].norm)
-
-    @staticmethod
-    def _norm_matrix(norm: tuple[float, float, float]) -> F64:
-        cx, cy, s = norm
-        return np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+        self.N0 = self.levels[0].N
 
     # ----------------------------------------------------------------------------------------------- public
 

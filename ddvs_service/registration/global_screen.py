@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from ddvs_service.lie import SL3_GENERATORS
 from ddvs_service.registration.global_fourier_mellin import SearchPair, SearchReference, level_roi
 from ddvs_service.registration.images import level_matrix
-from ddvs_service.registration.planar import MAD_TO_SIGMA, remaining_motion
+from ddvs_service.registration.planar import DEGENERATE_RCOND, MAD_TO_SIGMA, normalisation, remaining_motion
 from kernels.global_screen import (
     FRAME_NORM,
     FRAME_ROI,
@@ -53,7 +53,6 @@ TOLERANCE_PX = 0.05  # convergence: corner motion still to come, level pixels
 MIN_VALID_RATIO = 0.2  # a start keeping less of the ROI inside the current image has diverged
 MAX_STEP_FRACTION = 0.25  # largest corner motion of one update, fraction of the ROI size
 SCALE_FLOOR = 0.5  # grey levels
-DEGENERATE_RCOND = 1e-9  # reciprocal condition of the diagonally scaled normal matrix below this: degenerate
 _UPPER = np.triu_indices(N_UNKNOWNS)
 _GENERATORS_FLAT = SL3_GENERATORS.reshape(N_GEOMETRIC, 9)
 _EYE = np.eye(3)
@@ -80,11 +79,10 @@ class _Level:
     def build(roi: tuple[int, int, int, int], index: int) -> _Level:
         u0, v0, w, h = level_roi(roi, index)
         u1, v1 = u0 + w - 1, v0 + h - 1
-        cx, cy, s = 0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * max(u1 - u0, v1 - v0)
-        N = np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+        norm, N = normalisation((u0, v0, u1, v1))
         frame = np.zeros(N_FRAME, np.float32)
         frame[FRAME_ROI : FRAME_ROI + 4] = (u0, v0, u1, v1)
-        frame[FRAME_NORM : FRAME_NORM + 3] = (cx, cy, s)
+        frame[FRAME_NORM : FRAME_NORM + 3] = norm
         D = level_matrix(index)
         corners = np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]])
         return _Level(index, D, np.linalg.inv(D), N, np.linalg.inv(N), corners, float(max(u1 - u0, v1 - v0)),

@@ -84,6 +84,14 @@ def _project(G: F64, pts: F64) -> F64:
     return q[:2] / q[2]
 
 
+def normalisation(bounds: tuple[int, int, int, int]) -> tuple[tuple[float, float, float], F64]:
+    """`(cx, cy, s)` and the matrix `N` of the normalisation `q = (p − c) / s` about the centre of the inclusive
+    pixel bounds `(u0, v0, u1, v1)`, `s` half the larger side: the sl(3) increments of every engine are taken in it."""
+    u0, v0, u1, v1 = bounds
+    cx, cy, s = 0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * max(u1 - u0, v1 - v0)
+    return (cx, cy, s), np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+
+
 def symmetric_index(n: int) -> NDArray[np.intp]:
     """`idx[i, j]`: position of `H[min(i, j), max(i, j)]` in the kernel's row-major upper triangle."""
     i, j = np.minimum.outer(np.arange(n), np.arange(n)), np.maximum.outer(np.arange(n), np.arange(n))
@@ -165,14 +173,13 @@ class PlanarRegistration:
             D = level_matrix(index)
             sx0, sx1 = D[0, 0] * np.array([x, x + w - 1]) + D[0, 2]
             sy0, sy1 = D[1, 1] * np.array([y, y + h - 1]) + D[1, 2]
-            cx, cy, s = 0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * max(u1 - u0, v1 - v0)
-            N = np.array([[1.0 / s, 0.0, -cx / s], [0.0, 1.0 / s, -cy / s], [0.0, 0.0, 1.0]])
+            norm, N = normalisation((u0, v0, u1, v1))
             levels.append(
                 _Level(
                     index=index,
                     bounds=(u0, v0, u1, v1),
                     span=(float(sx0), float(sy0), float(sx1), float(sy1)),
-                    norm=(cx, cy, s),
+                    norm=norm,
                     n_pixels=n_pixels,
                     D=D,
                     D_inv=np.linalg.inv(D),
