@@ -170,7 +170,12 @@ def _std_from_information(info: F64) -> F64:
 def warp_points(G: F64, e: F64, basis: ParallaxBasis, coeffs: F64, p: ArrayLike) -> F64:
     """`π(G p* + ρ*(p*) e)` for reference pixels `p` (N × 2), full resolution."""
     q = np.asarray(p, dtype=np.float64).reshape(-1, 2)
-    P = np.c_[q, np.ones(len(q))] @ G.T + np.outer(basis.rho(coeffs, q), e)
+    return _warp(np.c_[q, np.ones(len(q))], basis.rho(coeffs, q), G, e)
+
+
+def _warp(p_h: F64, rho: F64, G: F64, e: F64) -> F64:
+    """Eq. (2) dehomogenised, `π(G p* + ρ* e)`, for homogeneous reference pixels `p_h` (N × 3) and their ρ* (N)."""
+    P = p_h @ G.T + np.outer(rho, e)
     return P[:, :2] / P[:, 2:3]
 
 
@@ -464,8 +469,7 @@ class GeneralRegistration:
 
     def _probe_warp(self, G: F64, e: F64, c: F64) -> F64:
         """`warp_points` at the probe points (full resolution), with the basis values there precomputed."""
-        P = self._probe @ G.T + np.outer(self._probe_phi @ c, e)
-        return P[:, :2] / P[:, 2:3]
+        return _warp(self._probe, self._probe_phi @ c, G, e)
 
     def _observed(self, state: _State) -> bool:
         """Whether the parallax `ρ* e` of `state` reaches `min_parallax_px` RMS (probe points)."""
