@@ -40,15 +40,9 @@ def _scalar(x: float, name: str) -> float:
     return v
 
 
-def homography_euclidean(G: ArrayLike, K: ArrayLike) -> F64:
-    """(8) `H = K⁻¹ G K`: the homography in normalised coordinates (maps `m*'` to `m'`, up to scale)."""
-    G = _matrix3(G, "G")
-    K = _matrix3(K, "K")
-    return np.linalg.solve(K, G @ K)
-
-
 def _normalised(G: ArrayLike, e: ArrayLike, K: ArrayLike) -> tuple[F64, F64]:
-    """`H` of (8) and the normalised epipole `e' = K⁻¹ e`, the inputs validated once."""
+    """(8) `H = K⁻¹ G K`, the homography in normalised coordinates (maps `m*'` to `m'`, up to scale), and the
+    normalised epipole `e' = K⁻¹ e`; the inputs validated once."""
     K = _matrix3(K, "K")
     K_inv = np.linalg.inv(K)
     return K_inv @ _matrix3(G, "G") @ K, K_inv @ _vector3(e, "e")
