@@ -11,7 +11,8 @@ For every reference pixel `p*` of the region of interest (level pixels, `u` = co
 - robust weight `w(r / σ)` (0 none, 1 Huber k = 1.345, 2 Tukey c = 4.685), σ supplied by the caller;
 - sums: upper triangle of `Jᵀ W J` (built per row from 12 moments, see `row_sums`), `Jᵀ W r`, statistics (valid
   and inlier counts, Σ r²), and a histogram of `|r|` binned on its float32 bits (16 bins per octave, no logarithm)
-  whose median gives the next MAD scale.
+  whose median gives the next MAD scale — over every other pixel of every other row, valid where the pixel's own
+  reference and warped values are (a quarter of the ROI sets the scale as well, at a fraction of the cost).
 
 Pixels whose reference value or reference neighbours are masked (set to `MASKED`, ≤ `MASK_LIMIT` after
 filtering) or whose five warped samples are not all inside the current image get weight 0. Reductions follow
@@ -48,9 +49,6 @@ MASK_LIMIT = -1.0e5  # any pyramid tap on a MASKED pixel keeps the value below t
 N_GEOMETRIC = 8
 N_STATS = 4  # n_valid, n_inliers, Σ r², median |r| (the last one only in the final sums)
 MAX_BANDS = 32
-NBINS = 256  # log-histogram of kernels.general_step
-LOG2_MIN = -8.0
-LOG2_MAX = 12.0
 HIST_LOG2_MIN = -8  # |r| histogram of planar_step: octaves 2^-8 … 2^12 grey levels, HIST_SUB linear bins each
 HIST_SUB_BITS = 4
 HIST_SUB = 1 << HIST_SUB_BITS
