@@ -29,7 +29,13 @@ from numpy.typing import NDArray
 from ddvs_service.lie import SL3_GENERATORS
 from ddvs_service.registration.global_fourier_mellin import SearchPair, SearchReference, level_roi
 from ddvs_service.registration.images import level_matrix
-from ddvs_service.registration.planar import DEGENERATE_RCOND, MAD_TO_SIGMA, normalisation, remaining_motion
+from ddvs_service.registration.planar import (
+    DEGENERATE_RCOND,
+    MAD_TO_SIGMA,
+    normalisation,
+    project,
+    remaining_motion,
+)
 from kernels.global_screen import (
     FRAME_NORM,
     FRAME_ROI,
@@ -87,12 +93,6 @@ class _Level:
         corners = np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]])
         return _Level(index, D, np.linalg.inv(D), N, np.linalg.inv(N), corners, float(max(u1 - u0, v1 - v0)),
                       w * h, frame)
-
-
-def _project(G: F64, points: F64) -> F64:
-    """Dehomogenised `G · points` for a stack of warps `G` (K, 3, 3) and homogeneous points (3, n): (K, 2, n)."""
-    q = G @ points
-    return q[:, :2] / q[:, 2:3]
 
 
 def retraction(x: F64) -> F64:
@@ -190,9 +190,9 @@ class BatchScreen:
             stop |= ~np.all(np.isfinite(delta), axis=1)
             delta[stop] = 0.0
             G_old = G_l[idx]
-            before = _project(G_old, level.corners)
+            before = project(G_old, level.corners)
             G_new = G_old @ level.N_inv @ retraction(delta[:, :N_GEOMETRIC]) @ level.N
-            step = np.max(np.abs(_project(G_new, level.corners) - before), axis=(1, 2))
+            step = np.max(np.abs(project(G_new, level.corners) - before), axis=(1, 2))
             big = ~(step <= limit)  # also catches NaN
             if big.any():
                 delta[big] *= np.where(np.isfinite(step[big]), limit / step[big], 0.0)[:, None]

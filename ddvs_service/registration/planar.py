@@ -79,9 +79,11 @@ class _State:
     inlier_ratio: float = 0.0
 
 
-def _project(G: F64, pts: F64) -> F64:
+def project(G: F64, pts: F64) -> F64:
+    """Dehomogenised `G · pts` for homogeneous points `pts` (3, n) and one warp `G` (3, 3) → (2, n), or a stack of
+    warps (K, 3, 3) → (K, 2, n)."""
     q = G @ pts
-    return q[:2] / q[2]
+    return q[..., :2, :] / q[..., 2:3, :]
 
 
 def normalisation(bounds: tuple[int, int, int, int]) -> tuple[tuple[float, float, float], F64]:
@@ -330,7 +332,7 @@ class PlanarRegistration:
         outcome: tuple[int, bool, str, bool] = (cfg.max_iterations, False, (
             f"max_iterations ({cfg.max_iterations}) reached at level {level.index}"), False)
         steps: list[float] = []
-        corners = _project(G_l, level.corners)
+        corners = project(G_l, level.corners)
         for it in range(1, cfg.max_iterations + 1):
             self._fill_state(G_l, state)
             step_kernel()
@@ -363,12 +365,12 @@ class PlanarRegistration:
                 outcome = (it, False, f"non-finite update at level {level.index}", True)
                 break
             G_l_new = G_l @ level.N_inv @ sl3_exp(delta[self._sl_G]) @ level.N
-            moved = _project(G_l_new, level.corners)
+            moved = project(G_l_new, level.corners)
             step = float(np.abs(moved - corners).max())
             if not step <= limit:  # also catches NaN
                 delta = delta * (limit / step) if math.isfinite(step) else np.zeros_like(delta)
                 G_l_new = G_l @ level.N_inv @ sl3_exp(delta[self._sl_G]) @ level.N
-                moved = _project(G_l_new, level.corners)
+                moved = project(G_l_new, level.corners)
             G_l, corners = G_l_new, moved
             state.gains = state.gains + delta[self._sl_S].reshape(self.grid)
             state.beta = state.beta + float(delta[self._sl_b][0])
