@@ -1,4 +1,4 @@
-"""The cold start's translation search (`registration.coarse_search`) and what it adds to `register` from identity."""
+"""The cold start's search (`registration.coarse_search`) and what it adds to `register` from identity."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from test_registration_synthetic import CENTRE, ROI, corner_error, load, similarity_about, warp
 
-from ddvs_service.registration.coarse_search import coarse_translation
+from ddvs_service.registration.coarse_search import coarse_alignment
 from ddvs_service.registration.planar import register
 from kernels.planar_step import MASKED
 
@@ -28,7 +28,7 @@ def moved(img: np.ndarray, H: np.ndarray, blur: float = 0.0) -> np.ndarray:
 def test_finds_a_sub_pixel_shift(texture, shift):
     small = cv2.resize(texture, None, fx=0.125, fy=0.125, interpolation=cv2.INTER_AREA)
     current = moved(small, np.array([[1.0, 0, shift[0]], [0, 1.0, shift[1]], [0, 0, 1.0]]))
-    T = coarse_translation(small, current, (41, 34, 64, 50))
+    T = coarse_alignment(small, current, (41, 34, 64, 50))
     assert T is not None
     assert np.allclose(T[:2, 2], shift, atol=0.25)
     assert np.array_equal(T[:2, :2], np.eye(2)) and np.array_equal(T[2], [0, 0, 1])
@@ -39,17 +39,17 @@ def test_masked_pixels_take_no_part(texture):
     current = moved(small, np.array([[1.0, 0, 5.0], [0, 1.0, -4.0], [0, 0, 1.0]]))
     reference = small.copy()
     reference[42:, :] = MASKED  # the lower half of the ROI, rows 42…50
-    T = coarse_translation(reference, current, (41, 34, 64, 50))
+    T = coarse_alignment(reference, current, (41, 34, 64, 50))
     assert T is not None and np.allclose(T[:2, 2], (5.0, -4.0), atol=0.25)
 
 
-def test_flat_roi_has_no_translation_and_bad_bounds_are_refused(texture):
+def test_flat_roi_has_no_alignment_and_bad_bounds_are_refused(texture):
     flat = np.full((80, 100), 120.0, dtype=np.float32)
-    assert coarse_translation(flat, flat, (30, 20, 60, 50)) is None
+    assert coarse_alignment(flat, flat, (30, 20, 60, 50)) is None
     with pytest.raises(ValueError, match="not inside"):
-        coarse_translation(flat, flat, (30, 20, 100, 50))
+        coarse_alignment(flat, flat, (30, 20, 100, 50))
     with pytest.raises(ValueError, match="expected the reference's"):
-        coarse_translation(flat, flat[:, :90], (30, 20, 60, 50))
+        coarse_alignment(flat, flat[:, :90], (30, 20, 60, 50))
 
 
 @pytest.mark.parametrize("shift, blur", [((60.0, -40.0), 0.0), ((-80.0, 20.0), 2.0), ((70.0, 50.0), 3.0)])
@@ -61,3 +61,15 @@ def test_register_from_identity_beyond_the_gauss_newton_basin(texture, shift, bl
     result = register(texture, moved(texture, H, blur), roi=ROI)
     assert result.converged, result.reason
     assert corner_error(H, result.H) < 0.05 + 0.1 * blur
+
+
+@pytest.mark.parametrize("angle_deg", [-18.0, 12.0])
+def test_finds_the_nearest_angle_of_the_grid(texture, angle_deg):
+    small = cv2.resize(texture, None, fx=0.125, fy=0.125, interpolation=cv2.INTER_AREA)
+    centre = (52.5, 42.0)  # of the ROI (41, 34, 64, 50)
+    H = similarity_about(centre, (3.0, -2.0), angle_deg, 1.0)
+    G = coarse_alignment(small, moved(small, H), (41, 34, 64, 50))
+    assert G is not None
+    assert np.isclose(np.degrees(np.arctan2(G[1, 0], G[0, 0])), 10.0 * round(angle_deg / 10.0))
+    moved_centre = G @ np.array([*centre, 1.0])
+    assert np.allclose(moved_centre[:2], np.add(centre, [3.0, -2.0]), atol=1.0)

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import sl3_exp, sl3_normalize
-from ddvs_service.registration.coarse_search import coarse_translation
+from ddvs_service.registration.coarse_search import coarse_alignment
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, build_pyramid, checked_grey, level_matrix
 from ddvs_service.registration.layout import ParamLayout
@@ -225,12 +225,12 @@ class PlanarRegistration:
             tolerance = fine if level.index == 0 else self.config.coarse_step_tolerance_px
             count = 0
             if level is levels[-1] and G0 is None:
-                # Cold start: find the translation by correlation (`coarse_search`), match the photometric moments,
-                # then settle the similarity part with the photometric unknowns frozen (a misaligned least-squares
-                # gain shrinks towards 0 and erases the signal).
-                T = coarse_translation(self.reference[level.index], pyramid[level.index], level.bounds)
-                if T is not None:
-                    state.G = level.D_inv @ T @ level.D
+                # Cold start: find the shift and a rough angle by correlation (`coarse_search`), match the photometric
+                # moments, then settle the similarity part with the photometric unknowns frozen (a misaligned
+                # least-squares gain shrinks towards 0 and erases the signal).
+                start = coarse_alignment(self.reference[level.index], pyramid[level.index], level.bounds)
+                if start is not None:
+                    state.G = level.D_inv @ start @ level.D
                 self._match_moments(level, self.reference[level.index], pyramid[level.index], state)
                 failed = False
                 for subset in (TRANSLATION, SIMILARITY):
