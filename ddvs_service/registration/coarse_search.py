@@ -2,14 +2,14 @@
 coarsest level.
 
 Gauss-Newton from identity only finds a shift within its basin (a few level pixels); a larger shift under a strong
-blur difference (Oxford bikes 1→4: 43 px, 5.4 px at the coarsest level of a 200×150 ROI) lies outside it. This search
-turns the reference ROI by each angle of `ROTATIONS_DEG` (one batched bilinear launch, `global_cost.sample_through`)
-and scores every shift of it up to `REACH` × the ROI's larger side along each axis by masked normalised
-cross-correlation (Padfield, "Masked object registration in the Fourier domain", IEEE TIP 2012: three correlations
-by FFT per angle), and returns the rigid warp of the best score, its shift refined to sub-pixel by a parabola
-(`global_fourier_mellin.peaks`). The engine's translation-only, then similarity Gauss-Newton continues from there.
-Without the angles, an ROI turned by 16–24° correlates best at a wrong shift (measured), where Gauss-Newton from
-identity would have converged.
+blur difference (Oxford bikes 1→4: 43 px, 5.4 px at the coarsest level of a 200×150 ROI) lies outside it. This
+search turns the reference ROI and its usable-pixel map by each angle of `ROTATIONS_DEG` (`global_cost.
+sample_through`, one batched bilinear launch each), scores every shift of the turned ROI up to `REACH` × the ROI's
+larger side along each axis by masked normalised cross-correlation (Padfield, "Masked object registration in the
+Fourier domain", IEEE TIP 2012: three correlations by FFT per angle), and returns the rigid warp of the best score,
+its shift refined to sub-pixel by a parabola (`global_fourier_mellin.peaks`). The engine's translation-only, then
+similarity Gauss-Newton continues from there. Without the angles, an ROI turned by 16–24° correlates best at a wrong
+shift (measured), where Gauss-Newton from identity would have converged.
 
 Only shifts that keep the whole turned ROI inside the searched window are scored: `global_fourier_mellin.
 TranslationSearch` zero-pads instead, and its floored variance over the padding can rank a shift half outside the
