@@ -1,11 +1,13 @@
 """Planar registration on real pairs with ground truth (issue 3): Oxford boat 1→2, bikes 1→2…6, leuven 1→2…6.
 
 For each pair and each central ROI of image 1 (200×150 and 400×300), both methods start at identity:
-- ours: `register` with the default `RegistrationConfig` (pyramid levels chosen from the ROI size, Huber, one gain);
+- ours: `register` with the default `RegistrationConfig` (pyramid levels chosen from the ROI size, Huber, one gain;
+  the cold start's shift and rough angle from the correlation search of `registration.coarse_search`);
 - `cv2.findTransformECC` (MOTION_HOMOGRAPHY, the ROI of image 1 as template, the whole image N as input, identity
   start shifted to the ROI, 200 iterations or 1e-6 change, Gaussian pre-filter 5) — a single level, as OpenCV has it.
 Error: the largest distance between the ROI corners mapped by the estimate and by the ground truth `H1toNp`
-(normalised by `H[2,2]`), in pixels of image N. The ground truth itself is good to about 0.5–1 px. A method's
+(normalised by `H[2,2]`), in pixels of image N. The ground truth itself is good to about 0.5–1 px
+(`bikes_ground_truth.py` compares it with an independent SIFT estimate on bikes). A method's
 failure (exception, not converged, or error > 5 px) is shown as such.
 
 Run: `.venv/bin/python benchmarks/real_pairs.py [--write-readme]` prints a markdown table (and with
