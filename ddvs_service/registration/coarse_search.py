@@ -28,7 +28,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from ddvs_service.registration.global_cost import sample_through
-from ddvs_service.registration.global_fourier_mellin import _dft_size, peaks
+from ddvs_service.registration.global_fourier_mellin import dft_size, peaks
 from kernels.planar_step import MASK_LIMIT
 
 F32 = NDArray[np.float32]
@@ -97,7 +97,7 @@ def coarse_alignment(reference: F32, current: F32, bounds: tuple[int, int, int, 
     spread = float(window.std())
     if not (energy.min() > 0.0 and spread > 0.0):
         return None
-    shape = (_dft_size(window.shape[0]), _dft_size(window.shape[1]))
+    shape = (dft_size(window.shape[0]), dft_size(window.shape[1]))
 
     def correlate(image_spectrum: NDArray[np.complex128], kernels: F64) -> F64:
         """Σ_q kernel_k(q) · image(q + d) for every kernel k and cyclic shift d of the canvas."""

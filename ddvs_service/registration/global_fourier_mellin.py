@@ -180,7 +180,7 @@ def reference_window(reference: F32, roi: Roi, context: float) -> F32:
     return reference[y0:y1, x0:x1]
 
 
-def _dft_size(n: int) -> int:
+def dft_size(n: int) -> int:
     """Smallest 2^a·3^b·5^c ≥ n (fast FFT length)."""
     m = n
     while True:
@@ -221,7 +221,7 @@ class TranslationSearch:
         self.box_centre = float(half)
         self.margin = half
         Hc, Wc = current.shape
-        self.shape = (_dft_size(Hc + 2 * half), _dft_size(Wc + 2 * half))
+        self.shape = (dft_size(Hc + 2 * half), dft_size(Wc + 2 * half))
         padded = np.zeros(self.shape, np.float32)
         padded[half : half + Hc, half : half + Wc] = current - current.mean()
         self.spectrum = np.fft.rfft2(padded)
