@@ -98,6 +98,39 @@ def render_view(
     return image, depth
 
 
+def render_camera(
+    surface: Surface,
+    texture: F32,
+    intrinsics: Intrinsics,
+    T_world_cam: ArrayLike,
+    psf_sigma: float = 0.5,
+    oversample: int = 4,
+) -> F32:
+    """Noise-free grey image of `surface` (unit gain, no bias) as a camera forms it, float32 (H, W): the scene
+    through a Gaussian optical blur of standard deviation `psf_sigma` (output pixels; 0: none), integrated over each
+    pixel's square area, read at the pixel grid. `render_view` point-samples instead (one ray per pixel centre), which
+    aliases texture detail finer than the pixel grid: no interpolation of such frames reproduces a sub-pixel motion.
+
+    Computed by ray casting at `oversample`× the resolution (`render_view` with the intrinsics of the sub-pixel grid,
+    `oversample²` rays per pixel on a regular grid over its area), a Gaussian blur of `psf_sigma · oversample`
+    sub-pixels (mirrored border) and the mean of each `oversample × oversample` block. Pixel-centre coordinates:
+    output pixel `u` covers `[u − ½, u + ½]`, whose sub-pixel `j` is centred at `u − ½ + (j + ½)/oversample`."""
+    if not (isinstance(oversample, int) and oversample >= 1):
+        raise ValueError(f"oversample must be a positive number of sub-pixels per pixel side, got {oversample!r}")
+    if not psf_sigma >= 0.0:
+        raise ValueError(f"psf_sigma must be a non-negative standard deviation in pixels, got {psf_sigma}")
+    import cv2
+
+    k = oversample
+    S = np.array([[k, 0.0, 0.5 * (k - 1)], [0.0, k, 0.5 * (k - 1)], [0.0, 0.0, 1.0]])  # pixel → sub-pixel grid
+    fine = Intrinsics.from_matrix(S @ intrinsics.K, k * intrinsics.width, k * intrinsics.height)
+    image = render_view(surface, texture, fine, T_world_cam)[0]
+    if psf_sigma > 0.0:
+        image = cv2.GaussianBlur(image, (0, 0), psf_sigma * k, borderType=cv2.BORDER_REFLECT)
+    blocks = image.reshape(intrinsics.height, k, intrinsics.width, k)
+    return blocks.mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+
+
 class FreeFlyer:
     """A camera flying freely in front of `surface`, sampled every `dt` seconds.
 
