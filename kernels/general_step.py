@@ -5,9 +5,14 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
 - warp: `P = G p* + ρ(p*) e = [X, Y, Z]`, `w = (X/Z, Y/Z)`; `ρ(p*) = Σ_m a_m x^i y^j` with `(x, y)` the basis
   normalisation of the reference pixel (`PARAMS_BNORM`) and `a` the monomial coefficients of the current `ρ*`;
 - residual `r = S(p*) · I(w) + β − I*(p*)`;
-- `I(w)` and its exact gradient `∇I(w)` from one Keys bicubic interpolation (`cubic_sample`, 4×4 taps): bilinear
+- `I(w)` and its exact gradient `∇I(w)` from one bicubic interpolation (`cubic_sample`, 4×4 taps): Keys cubic
+  convolution of the image, or (`spline`: `GeneralConfig.interpolation` "bspline", full resolution) the
+  interpolating cubic B-spline from the image's prefiltered coefficients (`kernels.bspline`). Bilinear
   interpolation's phase-dependent blur biased the optimum (gain 1.01–1.015 on unit-gain renders, warp 0.01–0.03 px
-  off on the paper's trajectory); bicubic brings the gain to 1.000–1.001 and lowers that warp error by 30–40 %;
+  off on the paper's trajectory); Keys brings the gain to 1.000–1.001 and lowers that warp error by 30–40 %; near
+  the paper's equilibrium its own error still dominates the residual at the true warp on band-limited frames
+  (`sim.freeflyer.render_camera`), which the B-spline, flat much closer to the Nyquist frequency, lowers 2–3×
+  (0.23 → 0.07 grey levels RMS with a 1 px optical blur);
 - image gradient in current pixels, mean of both sides (ESM-like): `g = ½ (S ∇I(w) + ∇I*(p*) A⁻¹)`, `A = ∂w/∂p*`
   (analytic, including `∇ρ`);
 - Jacobian columns, in this order:
@@ -133,8 +138,29 @@ def _keys(t: ti.f32):
 
 
 @ti.func
-def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32):
-    """Keys bicubic sample of `img` at column `x`, row `y` and its exact gradient (grey levels per pixel).
+def _bspline(t: ti.f32):
+    """Cubic B-spline weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1), and their derivatives."""
+    t2 = t * t
+    t3 = t2 * t
+    s = 1.0 - t
+    w = ti.Vector([s * s * s / 6.0, 0.5 * t3 - t2 + 2.0 / 3.0, -0.5 * t3 + 0.5 * t2 + 0.5 * t + 1.0 / 6.0, t3 / 6.0])
+    d = ti.Vector([-0.5 * s * s, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2])
+    return w, d
+
+
+@ti.func
+def _weights(t: ti.f32, spline: ti.template()):
+    """`_bspline(t)` when `spline`, else `_keys(t)`."""
+    w, d = _keys(t)
+    if ti.static(spline):
+        w, d = _bspline(t)
+    return w, d
+
+
+@ti.func
+def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32, spline: ti.template()):
+    """Bicubic sample at column `x`, row `y` and its exact gradient (grey levels per pixel): Keys cubic convolution of
+    the image `img`, or, when `spline`, the cubic B-spline whose coefficients `img` holds (`kernels.bspline`).
 
     Returns `(value, d/dx, d/dy, ok)`; `ok = 0` (zeros) unless the 4×4 taps lie inside, i.e. `1 ≤ x, y` and
     `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences). Branch-free:
@@ -147,8 +173,8 @@ def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32):
     yc = ti.min(ti.max(y, 1.0), h - 2.0)
     x0 = ti.max(ti.min(ti.cast(ti.floor(xc), ti.i32), w - 3), 1)  # integer clamp too: NaN casts stay in bounds
     y0 = ti.max(ti.min(ti.cast(ti.floor(yc), ti.i32), h - 3), 1)
-    wx, dx = _keys(xc - x0)
-    wy, dy = _keys(yc - y0)
+    wx, dx = _weights(xc - x0, spline)
+    wy, dy = _weights(yc - y0, spline)
     val = 0.0
     gx = 0.0
     gy = 0.0
@@ -197,7 +223,8 @@ def warp_point(G: ti.template(), e: ti.template(), u: ti.i32, v: ti.i32, rho: ti
 @ti.func
 def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.template(), rho_coeffs: ti.template(),
                 span: ti.template(), gains: ti.template(), v: ti.i32, u: ti.i32, yp: ti.template(), bcx: ti.f32,
-                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_rows: ti.template(), grid_cols: ti.template()):
+                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_rows: ti.template(), grid_cols: ti.template(),
+                spline: ti.template()):
     """Everything one reference pixel `(u, v)` contributes, before the Jacobian: `(ok, r, I(w), ∂I/∂x, ∂I/∂y, x, y,
     1/Z, ρ, ∂ρ/∂u, ∂ρ/∂v, x-powers, ∂I*/∂u, ∂I*/∂v, S, φ)` (`yp`: powers of the row's basis coordinate).
 
@@ -207,7 +234,7 @@ def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.
     xp = _powers((u - bcx) / bs, degree)
     rho, rho_x, rho_y = parallax_at(rho_coeffs, xp, yp, degree)
     x, y, iz, ok_z = warp_point(G, e, u, v, rho)
-    c0, cgx, cgy, inside = cubic_sample(cur, x, y)
+    c0, cgx, cgy, inside = cubic_sample(cur, x, y, spline)
     ok = ref_ok & ok_z & (inside == 1)
     gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
     r = gain * c0 + beta - ir
@@ -226,8 +253,10 @@ def general_step(
     with_rho: ti.template(),
     grid_rows: ti.template(),
     grid_cols: ti.template(),
+    spline: ti.template(),
 ):
-    """Residuals, robust weights and normal equations of eq. (5) under the warp (2) (module docstring)."""
+    """Residuals, robust weights and normal equations of eq. (5) under the warp (2) (module docstring); `cur` holds
+    the current image's cubic B-spline coefficients when `spline`, else the image itself (Keys interpolation)."""
     NR = ti.static(n_rho if with_rho else 0)
     NG = ti.static(grid_rows * grid_cols)
     P = ti.static(N_GEOMETRIC + N_EPIPOLE + NR + NG + 1)
@@ -276,7 +305,7 @@ def general_step(
                     for u in range(ut0, ut1 + 1):
                         ok, r, c0, cgx, cgy, x, y, iz, rho, rho_u, rho_v, xp, gxr, gyr, gain, phi = pixel_terms(
                             ref, cur, G, e, rho_coeffs, span, gains, v, u, yp, bcx, bs, beta, degree, grid_rows,
-                            grid_cols)
+                            grid_cols, spline)
                         # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
                         pxu = G[0] + rho_u * e[0]
                         pyu = G[3] + rho_u * e[1]
@@ -397,7 +426,8 @@ def render_general(
         X, Y, Z = homography_apply(load_vector(params, PARAMS_G, 9), u, v)
         Z += rho * params[PARAMS_E + 2]
         iz = 1.0 / ti.select(Z > 1e-8, Z, 1.0)
-        val, _gx, _gy, ok = cubic_sample(cur, (X + rho * params[PARAMS_E]) * iz, (Y + rho * params[PARAMS_E + 1]) * iz)
+        val, _gx, _gy, ok = cubic_sample(cur, (X + rho * params[PARAMS_E]) * iz, (Y + rho * params[PARAMS_E + 1]) * iz,
+                                         False)
         ok = ok if Z > 1e-8 else 0
         gain, _phi = gain_at(load_vector(params, PARAMS_SPAN, 4),
                              load_vector(params, PARAMS_GAINS, grid_rows * grid_cols), u, v, grid_rows, grid_cols)

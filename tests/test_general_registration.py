@@ -5,6 +5,7 @@ and the gauge of the parallax basis."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import replace
 from functools import cache
 
@@ -29,7 +30,7 @@ from ddvs_service.registration.general import (
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.general_tracker import GeneralTracker
 from sim.experiment_synthetic import SyntheticSetup, run_synthetic
-from sim.freeflyer import render_view
+from sim.freeflyer import render_camera, render_view
 from sim.ground_truth import ground_truth, parallax_map
 from sim.surfaces import Plane, paper_saddle
 
@@ -80,42 +81,76 @@ def test_basis_fixes_the_plane_gauge() -> None:
         np.testing.assert_allclose(phi.T @ phi / len(p), np.eye(n), atol=1e-10)
 
 
-@pytest.mark.slow
-def test_paper_trajectory_from_a_cold_start() -> None:
+def track_trajectory(render_frame: Callable[[np.ndarray], np.ndarray], config: GeneralConfig | None = None):
     """Cold start at the paper's initial displacement (no ρ* prior, G from the global initialiser), then every 2nd
-    image of the first 20 and every 10th to convergence of the exact-geometry decoupled run: the estimated warp
-    is within 0.1 px RMS of the true warp over the ROI, and the control error (16) from the estimate matches the
-    ground-truth one to 1 % of its norm or 1e-4 absolute on the first part (see the assertion's comment)."""
+    image of the first 20 and every 10th to convergence of the exact-geometry decoupled run, frames from
+    `render_frame(T_world_cam)`: (images, worst warp RMS error over the ROI (px), per image the error of the control
+    error (16) from the estimate relative to the criterion's tolerance max(1 % of its norm, 1e-4), the tracker,
+    the last result). Every frame must converge."""
     saddle = paper_saddle()
     trajectory = run_synthetic("ddvs")  # exact geometry: the poses of the paper's loop
     law = ControlLaw(ControlConfig("ddvs", gains=0.4, stop_threshold=1e-3), INTR)
-    tracker = GeneralTracker(render(saddle, np.eye(4)), ROI)
+    tracker = GeneralTracker(render_frame(np.eye(4)), ROI, config or GeneralConfig())
     frames = [*range(0, 20, 2), *range(20, trajectory.images, 10), trajectory.images - 1]
-    worst_rms, worst_err = 0.0, []
+    worst_rms, errors = 0.0, []
     for k in frames:
         T = pose(trajectory.rotations[k], trajectory.positions[k])
-        result = tracker.track(render(saddle, T))
+        result = tracker.track(render_frame(T))
         assert result.converged, f"frame {k}: {result.reason}"
         worst_rms = max(worst_rms, warp_rms(result, saddle, T))
         gt = ground_truth(saddle, INTR, np.eye(4), T)
         exact = law.error(gt.G, gt.e, gt.rho)
         estimated = law.error(result.G, result.e, result.rho_at(CONTROL_POINT))
-        worst_err.append(float(np.linalg.norm(estimated - exact) / max(0.01 * np.linalg.norm(exact), 1e-4)))
+        errors.append(float(np.linalg.norm(estimated - exact) / max(0.01 * np.linalg.norm(exact), 1e-4)))
+    return frames, worst_rms, errors, tracker, result
+
+
+@pytest.mark.slow
+def test_paper_trajectory_from_a_cold_start() -> None:
+    """Point-sampled frames (`render_view`) along the paper's trajectory (`track_trajectory`): the estimated warp
+    is within 0.1 px RMS of the true warp over the ROI, and the control error (16) from the estimate matches the
+    ground-truth one to 1 % of its norm or 1e-4 absolute on the first part (see the assertion's comment)."""
+    saddle = paper_saddle()
+    frames, worst_rms, worst_err, tracker, result = track_trajectory(lambda T: render(saddle, T))
     assert worst_rms < 0.1
     assert FLAG_NO_PARALLAX not in result.flags
-    # Met (≤ 1) over images 0–180 (|ε̄| from 1.7 down to ~0.05). NOT met nearer the equilibrium: measured up to 12×
-    # the tolerance (images 330 and 390) and ~5× on the last images (5e-4 absolute); the bound below only guards
-    # against regressions of that gap. Diagnosis (see the report): the warp is within 0.018 px RMS of the truth, and
-    # a geometric fit of (G, e) with this ρ* model to the true warp gives ≤ 0.63×, so the model is not the limit;
-    # the gap is the image registration's residual error on the perspective terms h31, h32, which the tolerance
-    # (~1e-4 on ε̄) puts at the ~0.002 px level over the ROI. Bicubic sampling (kernels.general_step) removed the
-    # bilinear contrast loss (gain 1.01 -> 1.000) and a third of the warp error, but not this gap: what is left
-    # comes from the rendered images themselves (point-sampled bilinear texture, not band-limited), which no
-    # interpolator of the current image reproduces exactly.
+    # Met (≤ 1) over images 0–180 (|ε̄| from 1.7 down to ~0.05; measured ≤ 0.76). NOT met nearer the equilibrium:
+    # up to 13× the tolerance (image 390, 1.3e-3 absolute) and 3–5× on the last images (3–5e-4 absolute); the
+    # bound below only guards against regressions of that gap. Diagnosis (benchmarks/general_accuracy.py): the
+    # cost is lower at the estimate than at the true warp, so the optimum itself is off, by the residual of the
+    # interpolated current image at the true warp (2.6–5 grey levels RMS near the equilibrium, for sub-pixel
+    # motions): these frames point-sample a texture of ~1.6 texels per pixel, and that aliasing, which no
+    # interpolator of the frame undoes, moves the warp by 0.01–0.02 px, mostly in G's perspective terms, which
+    # (16) amplifies (the tolerance asks ~0.002 px there). Not the cause: the ρ* model (a geometric fit of G, e
+    # with the estimated ρ* to the true warp gives ≤ 0.4×), the robust loss, the gradient (ESM or current only),
+    # the stopping tolerance (1e-5 px changes nothing). Pixel-area integration alone (4×4 rays) gives 10×;
+    # camera frames and B-spline interpolation: `test_camera_frames_near_the_equilibrium`.
     early = [err for k, err in zip(frames, worst_err) if k <= 180]
     assert max(early) <= 1.0, worst_err
     assert max(worst_err) <= 15.0, worst_err
     assert np.all(np.linalg.eigvalsh(tracker.rho_information) > 0.0)
+
+
+@pytest.mark.slow
+def test_camera_frames_near_the_equilibrium() -> None:
+    """Frames as a camera forms them (`render_camera`: 0.7 px Gaussian optical blur, each pixel integrating its
+    area with 4×4 rays; the band-limiting a real lens and sensor apply, which the point-sampled frames of the test
+    above lack) along the same trajectory, registered with cubic B-spline interpolation: the control error (16)
+    from the estimate matches the ground-truth one to 1e-4 absolute near the equilibrium (images ≥ 380, |ε̄| ≤ 5.2e-3;
+    measured ≤ 0.86× the tolerance, against 4.3× with Keys interpolation of the same frames and 13× on point-sampled
+    frames), and the warp is within 0.1 px of the truth throughout.
+
+    NOT met in between (images 180–370: up to 1.8× the tolerance, 2.5e-4 absolute; 1.2× already on images ≤ 180):
+    the blur costs accuracy on ρ*, estimated once on the first image (62° of rotation from the reference): tracking
+    these same frames with the ρ* estimated on the first *point-sampled* image gives ≤ 0.93× over the whole
+    trajectory. The bound below guards that gap against regressions."""
+    saddle = paper_saddle()
+    frames, worst_rms, errors, _, result = track_trajectory(
+        lambda T: render_camera(saddle, texture(), INTR, T, psf_sigma=0.7), GeneralConfig(interpolation="bspline"))
+    assert worst_rms < 0.1
+    assert FLAG_NO_PARALLAX not in result.flags
+    assert max(err for k, err in zip(frames, errors) if k >= 380) <= 1.0, errors
+    assert max(errors) <= 2.5, errors
 
 
 @pytest.mark.slow
@@ -227,5 +262,7 @@ def test_register_general_refuses_bad_input() -> None:
         register_general(image, image, ROI, rho0=np.zeros(6))
     with pytest.raises(ValueError, match="rho_degree"):
         GeneralConfig(rho_degree=5)
+    with pytest.raises(ValueError, match="interpolation"):
+        GeneralConfig(interpolation="lanczos")
     with pytest.raises(ValueError, match="not inside"):
         GeneralRegistration(image, (500, 400, 200, 150))

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -78,6 +78,12 @@ class GeneralConfig:
     - `min_margin`: relative cost gap to a different parallax solution below which the result is flagged ambiguous.
     - `distinct_epipole_deg`: two solutions whose epipole directions differ by more than this are different.
     - `lost_after`: consecutive failed frames after which the tracker declares LOST and re-acquires.
+    - `interpolation`: how the full-resolution steps sample the current image, "keys" (cubic convolution) or
+      "bspline" (the interpolating cubic B-spline, `kernels.bspline`; coarser levels keep Keys). On band-limited
+      frames near the paper's equilibrium, where the warp must be right to ~0.002 px, Keys' own error dominates the
+      residual and the B-spline brings the control error (16) within 1e-4 (`tests/test_general_registration.py`);
+      its prefilter of the whole current image costs ~0.8 ms per frame (tracking frame 1.5 → 2.4 ms on 2 cores),
+      and on point-sampled renders, whose aliasing no interpolator undoes, it gains little, hence not the default.
     """
 
     base: RegistrationConfig = field(default_factory=RegistrationConfig)
@@ -88,6 +94,7 @@ class GeneralConfig:
     min_margin: float = 0.002
     distinct_epipole_deg: float = 20.0
     lost_after: int = 3
+    interpolation: Literal["keys", "bspline"] = "keys"
 
     def __post_init__(self) -> None:
         if self.rho_degree not in (2, 3):
@@ -98,6 +105,8 @@ class GeneralConfig:
             raise ValueError("min_parallax_px and min_parallax_snr must be ≥ 0")
         if self.lost_after < 1:
             raise ValueError(f"lost_after must be ≥ 1, got {self.lost_after}")
+        if self.interpolation not in ("keys", "bspline"):
+            raise ValueError(f"interpolation must be 'keys' or 'bspline', got {self.interpolation!r}")
 
 
 @dataclass
@@ -224,6 +233,7 @@ class GeneralRegistration:
         self._work: dict[int, NDArray[np.float32]] = {}
         self._sym: dict[int, NDArray[np.intp]] = {}
         self._steps: dict[tuple[int, bool], tuple[F32, Prepared]] = {}  # prepared launches, with their `cur`
+        self._spline: tuple[F32, Prepared] | None = None  # B-spline coefficients buffer and its prefilter launch
         x, y, w, h = self.roi
         u, v = np.meshgrid(np.linspace(x, x + w - 1, 16), np.linspace(y, y + h - 1, 12))
         # Points where steps and parallax are measured (homogeneous, full resolution), and the basis there.
@@ -332,14 +342,26 @@ class GeneralRegistration:
 
     def _load_current(self, current: F32, n_levels: int) -> list[F32]:
         """The first `n_levels` levels of the current image's pyramid, in the planar engine's fixed buffers (this
-        object runs the planar stage on the same buffers), so that the step launches can be prepared once."""
-        return self.planar.load_current(current, n_levels)
+        object runs the planar stage on the same buffers), so that the step launches can be prepared once; with
+        `config.interpolation` "bspline", level 0 is given as its cubic B-spline coefficients (`kernels.bspline`)."""
+        pyramid = self.planar.load_current(current, n_levels)
+        if self.config.interpolation != "bspline":
+            return pyramid
+        if self._spline is None:
+            from kernels.bspline import bspline_coefficients, check_buffers
+
+            coefficients = np.zeros_like(pyramid[0])
+            check_buffers(pyramid[0], coefficients)
+            self._spline = coefficients, Prepared(bspline_coefficients, pyramid[0], coefficients)
+        self._spline[1]()
+        return [self._spline[0], *pyramid[1:]]
 
     def _normal_equations(
         self, level: Any, cur: F32, state: _State, with_rho: bool
     ) -> tuple[F64, F64, NDArray[np.float64]]:
-        """One kernel launch at the state on the current level image `cur`: (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr²,
-        median |r|]). The launch is prepared once per (level, `with_rho`, buffer) (`kernels.launch.Prepared`)."""
+        """One kernel launch at the state on the current level image `cur` (`_load_current`: B-spline coefficients
+        at level 0 with `config.interpolation` "bspline"): (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr², median |r|]).
+        The launch is prepared once per (level, `with_rho`, buffer) (`kernels.launch.Prepared`)."""
         from kernels.general_step import general_step, n_acc, n_columns, work_size
 
         n = n_columns(self.basis.size, with_rho, *self.grid)
@@ -347,10 +369,11 @@ class GeneralRegistration:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
             self._sym[n] = symmetric_index(n)
         key = (level.index, with_rho)
+        spline = level.index == 0 and self.config.interpolation == "bspline"
         if key not in self._steps or self._steps[key][0] is not cur:
             self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
                                               self._work[n], self.basis.degree, self.basis.size, with_rho,
-                                              *self.grid))
+                                              *self.grid, spline))
         self._fill(level, level.D @ state.G @ level.D_inv, level.D @ state.e, state)
         self._steps[key][1]()
         acc = self._work[n][: n_acc(n)].astype(np.float64)
