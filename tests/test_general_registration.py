@@ -143,7 +143,12 @@ def test_camera_frames_near_the_equilibrium() -> None:
     NOT met in between (images 180–370: up to 1.8× the tolerance, 2.5e-4 absolute; 1.2× already on images ≤ 180):
     the blur costs accuracy on ρ*, estimated once on the first image (62° of rotation from the reference): tracking
     these same frames with the ρ* estimated on the first *point-sampled* image gives ≤ 0.93× over the whole
-    trajectory. The bound below guards that gap against regressions."""
+    trajectory. Refining ρ* over the frames does not close it (an information filter on ρ*, joint Gauss-Newton
+    with the accumulated information as prior, measured 1.30× / 1.86×): every frame's data carry the same bias,
+    because the optical blur is the same in each *image* and so differs between two frames by the warp's local
+    distortion, which varies with the parallax. ρ* shape error (`benchmarks/general_accuracy.py`): 0.64 % here,
+    1.02 % at 1.2 px, 0.26 % point-sampled, 0.23 % with the blur carried by the texture instead
+    (`test_surface_blur_meets_the_criterion`). The bound below guards that gap against regressions."""
     saddle = paper_saddle()
     frames, worst_rms, errors, _, result = track_trajectory(
         lambda T: render_camera(saddle, texture(), INTR, T, psf_sigma=0.7), GeneralConfig(interpolation="bspline"))
@@ -151,6 +156,22 @@ def test_camera_frames_near_the_equilibrium() -> None:
     assert FLAG_NO_PARALLAX not in result.flags
     assert max(err for k, err in zip(frames, errors) if k >= 380) <= 1.0, errors
     assert max(errors) <= 2.5, errors
+
+
+@pytest.mark.slow
+def test_surface_blur_meets_the_criterion() -> None:
+    """The same blur as a texture property (texture blurred by a Gaussian of 2 texels, about 1.25 px; frames
+    integrated over each pixel's area with 4×4 rays, no optical blur), so that it warps with the scene and the
+    frames differ by the motion alone: with B-spline interpolation the control error (16) from the estimate meets
+    the criterion along the whole trajectory (measured ≤ 0.80×). With the blur in the image (`render_camera`'s
+    optical blur, the test above) it does not: what is left there is that blur's mismatch between frames."""
+    saddle = paper_saddle()
+    blurred = cv2.GaussianBlur(texture(), (0, 0), 2.0)
+    _, worst_rms, errors, _, result = track_trajectory(
+        lambda T: render_camera(saddle, blurred, INTR, T, psf_sigma=0.0), GeneralConfig(interpolation="bspline"))
+    assert worst_rms < 0.1
+    assert FLAG_NO_PARALLAX not in result.flags
+    assert max(errors) <= 1.0, errors
 
 
 @pytest.mark.slow
