@@ -257,16 +257,18 @@ def test_closed_loop_on_rendered_images_follows_the_exact_loop() -> None:
 
 
 @pytest.mark.slow
-def test_register_cli_general_model(tmp_path, capsys) -> None:
-    """`ddvs register --model general` on two PNG files of the saddle: one JSON line with the epipole and the parallax
-    field, converged, warp within 0.1 px of the truth over the ROI."""
+@pytest.mark.parametrize("interpolation", ["keys", "bspline"])
+def test_register_cli_general_model(tmp_path, capsys, interpolation) -> None:
+    """`ddvs register --model general [--interpolation ...]` on two PNG files of the saddle: one JSON line with the
+    epipole and the parallax field, converged, warp within 0.1 px of the truth over the ROI."""
     saddle = paper_saddle()
     T = pose(so3_exp([-0.03, -0.1, 0.35]), [0.06, -0.04, 0.02])
     paths = [str(tmp_path / name) for name in ("ref.png", "cur.png", "G0.txt")]
     for path, image in zip(paths, (render(saddle, np.eye(4)), render(saddle, T))):
         cv2.imwrite(path, np.clip(np.rint(image), 0, 255).astype(np.uint8))
     np.savetxt(paths[2], ground_truth(saddle, INTR, np.eye(4), T).G)
-    rc = main(["register", paths[0], paths[1], "--roi", *map(str, ROI), "--init", paths[2], "--model", "general"])
+    rc = main(["register", paths[0], paths[1], "--roi", *map(str, ROI), "--init", paths[2], "--model", "general",
+               "--interpolation", interpolation])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])  # after Taichi's banner
     assert rc == 0 and out["converged"], out["reason"]
     assert FLAG_NO_PARALLAX not in out["flags"] and out["parallax_px"] > 0.1 and out["rho_degree"] == 2

@@ -28,3 +28,8 @@ def test_bad_service_config_is_named(tmp_path: Path) -> None:
     bad.write_text('{"control": {"law": "pid"}}')
     with pytest.raises(ValueError, match=r"(?s)bad\.json.*law"):
         ServiceConfig.from_file(bad)
+
+
+def test_unknown_interpolation_is_refused() -> None:
+    with pytest.raises(ValueError, match="interpolation"):
+        ServiceConfig().merged({"registration": {"interpolation": "linear"}})

@@ -320,11 +320,13 @@ def test_sigterm_publishes_zero_twist_and_exits_cleanly(tmp_path: Path) -> None:
             service.proc.kill()
 
 
-def test_general_model_serves_a_planar_target(tmp_path: Path) -> None:
-    """With `registration.model = general` the service runs the eq. (2) tracker; on a planar scene ρ* stays ~0."""
+@pytest.mark.parametrize("interpolation", ["keys", "bspline"])
+def test_general_model_serves_a_planar_target(tmp_path: Path, interpolation: str) -> None:
+    """With `registration.model = general` the service runs the eq. (2) tracker (either sampling of the current
+    image); on a planar scene ρ* stays ~0."""
     port = free_port()
     config = service_config(port, tmp_path / "state")
-    config = config.merged({"registration": {"model": "general"}})
+    config = config.merged({"registration": {"model": "general", "interpolation": interpolation}})
     img = scene()
     with running_service(config, tmp_path, port) as (_, op):
         assert op.command(op="set_reference", source="next_frame").ok

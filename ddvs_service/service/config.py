@@ -41,9 +41,11 @@ class IntrinsicsConfig(_Strict):
 class RegistrationSettings(_Strict):
     """The registration: `model` planar (`ρ* ≡ 0`) or general (eq. (2): `G`, `e`, `ρ*`), the engine's settings
     (`RegistrationConfig`), and the template: `roi = [x, y, w, h]` in reference pixels, or `template_size = [w, h]`
-    centred on the control point when `roi` is null."""
+    centred on the control point when `roi` is null. `interpolation` (general model only): how the full-resolution
+    steps sample the current image, "keys" or "bspline" (`GeneralConfig.interpolation`)."""
 
     model: Literal["planar", "general"] = "planar"
+    interpolation: Literal["keys", "bspline"] = "keys"
     roi: tuple[int, int, int, int] | None = None
     template_size: tuple[int, int] = (200, 150)
     levels: int = 3

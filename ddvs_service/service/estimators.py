@@ -85,7 +85,7 @@ class GeneralEstimator:
     def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings,
                  rho_coeffs: list[float] | None = None) -> None:
         self.settings = settings
-        config = GeneralConfig(base=settings.engine_config())
+        config = GeneralConfig(base=settings.engine_config(), interpolation=settings.interpolation)
         self._tracker = GeneralTracker(reference, roi, config, rho=rho_coeffs or None)
         self._G: F64 = np.eye(3)
 
