@@ -34,10 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="planar homography (default) or the general model with epipole and parallax field")
     parser.add_argument("--rho-degree", type=int, choices=(2, 3), default=2,
                         help="general model: degree of the parallax basis (2 biquadratic, 3 bicubic; default 2)")
-    parser.add_argument("--interpolation", choices=("keys", "bspline"), default="keys",
-                        help="general model: sampling of the current image at full resolution, Keys' cubic "
-                             "convolution (default) or the interpolating cubic B-spline (more accurate on "
-                             "anti-aliased images, ~0.8 ms more per frame; GeneralConfig.interpolation)")
+    parser.add_argument("--interpolation", choices=("bspline", "keys"), default="bspline",
+                        help="general model: sampling of the current image at full resolution, the interpolating "
+                             "cubic B-spline (default) or Keys' cubic convolution (GeneralConfig.interpolation)")
 
 
 def _grid(text: str) -> tuple[int, int]:

@@ -107,11 +107,13 @@ def track_trajectory(render_frame: Callable[[np.ndarray], np.ndarray], config: G
 
 @pytest.mark.slow
 def test_paper_trajectory_from_a_cold_start() -> None:
-    """Point-sampled frames (`render_view`) along the paper's trajectory (`track_trajectory`): the estimated warp
-    is within 0.1 px RMS of the true warp over the ROI, and the control error (16) from the estimate matches the
-    ground-truth one to 1 % of its norm or 1e-4 absolute on the first part (see the assertion's comment)."""
+    """Point-sampled frames (`render_view`) along the paper's trajectory (`track_trajectory`), Keys interpolation:
+    the estimated warp is within 0.1 px RMS of the true warp over the ROI, and the control error (16) from the
+    estimate matches the ground-truth one to 1 % of its norm or 1e-4 absolute on the first part (see the
+    assertion's comment; with the default B-spline these aliased frames give 1.05× there and 8.7× overall)."""
     saddle = paper_saddle()
-    frames, worst_rms, worst_err, tracker, result = track_trajectory(lambda T: render(saddle, T))
+    frames, worst_rms, worst_err, tracker, result = track_trajectory(lambda T: render(saddle, T),
+                                                                      GeneralConfig(interpolation="keys"))
     assert worst_rms < 0.1
     assert FLAG_NO_PARALLAX not in result.flags
     # Met (≤ 1) over images 0–180 (|ε̄| from 1.7 down to ~0.05; measured ≤ 0.76). NOT met nearer the equilibrium:

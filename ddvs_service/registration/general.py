@@ -78,13 +78,14 @@ class GeneralConfig:
     - `min_margin`: relative cost gap to a different parallax solution below which the result is flagged ambiguous.
     - `distinct_epipole_deg`: two solutions whose epipole directions differ by more than this are different.
     - `lost_after`: consecutive failed frames after which the tracker declares LOST and re-acquires.
-    - `interpolation`: how the full-resolution steps sample the current image, "keys" (cubic convolution) or
-      "bspline" (the interpolating cubic B-spline, `kernels.bspline`; coarser levels keep Keys). On band-limited
-      frames near the paper's equilibrium, where the warp must be right to ~0.002 px, Keys' own error dominates the
-      residual and the B-spline brings the control error (16) within 1e-4 (`tests/test_general_registration.py`);
-      its prefilter of the whole current image costs ~0.8 ms per frame (tracking frame 1.5 → 2.4 ms on 2 cores),
-      and on point-sampled renders, whose aliasing no interpolator undoes, it helps less (worst error of (16) 13× →
-      9× the tolerance) and loses on the first images (0.76× → 1.05×): not the default.
+    - `interpolation`: how the full-resolution steps sample the current image, "bspline" (the interpolating cubic
+      B-spline, `kernels.bspline`; coarser levels keep Keys) or "keys" (Keys' cubic convolution). Near the paper's
+      equilibrium the warp must be right to ~0.002 px for the control error (16) to be within 1e-4; there Keys' own
+      error dominates the residual. Worst error of (16) along the paper's trajectory, × the criterion's tolerance
+      (benchmarks/general_accuracy.py): anti-aliased frames (texture blurred by 2 texels, 4×4 rays per pixel)
+      0.80 with the B-spline vs 2.71 with Keys; frames with a 0.7 px optical blur 1.80 vs 5.0; point-sampled
+      (aliased) frames 8.7 vs 13.3, but 1.05 vs 0.76 on their first 180 images. The B-spline's prefilter of the
+      whole current image costs ~0.8 ms per frame (tracking frame 1.5 → 2.4 ms on 2 cores).
     """
 
     base: RegistrationConfig = field(default_factory=RegistrationConfig)
@@ -95,7 +96,7 @@ class GeneralConfig:
     min_margin: float = 0.002
     distinct_epipole_deg: float = 20.0
     lost_after: int = 3
-    interpolation: Literal["keys", "bspline"] = "keys"
+    interpolation: Literal["keys", "bspline"] = "bspline"
 
     def __post_init__(self) -> None:
         if self.rho_degree not in (2, 3):

@@ -42,10 +42,10 @@ class RegistrationSettings(_Strict):
     """The registration: `model` planar (`ρ* ≡ 0`) or general (eq. (2): `G`, `e`, `ρ*`), the engine's settings
     (`RegistrationConfig`), and the template: `roi = [x, y, w, h]` in reference pixels, or `template_size = [w, h]`
     centred on the control point when `roi` is null. `interpolation` (general model only): how the full-resolution
-    steps sample the current image, "keys" or "bspline" (`GeneralConfig.interpolation`)."""
+    steps sample the current image, "bspline" or "keys" (`GeneralConfig.interpolation`)."""
 
     model: Literal["planar", "general"] = "planar"
-    interpolation: Literal["keys", "bspline"] = "keys"
+    interpolation: Literal["keys", "bspline"] = "bspline"
     roi: tuple[int, int, int, int] | None = None
     template_size: tuple[int, int] = (200, 150)
     levels: int = 3
