@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -27,7 +28,7 @@ from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import pose
-from ddvs_service.registration.general import GeneralConfig
+from ddvs_service.registration.general import GeneralConfig, GeneralResult
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.general_tracker import GeneralTracker
 from sim.experiment_synthetic import run_synthetic
@@ -70,19 +71,27 @@ def rho_shape_error(basis: ParallaxBasis, coeffs: np.ndarray, p: np.ndarray, rho
     return float(np.linalg.norm(scale * coeffs - truth) / np.linalg.norm(truth))
 
 
-def measure(spec: str, texture: np.ndarray) -> list[dict[str, float]]:
-    """Per tracked image: image index, |ε̄|, warp RMS error (px), |Δε̄|, |Δε̄| / tolerance and the ρ* shape error
-    (`rho_shape_error`)."""
+@dataclass
+class Run:
+    """One tracked trajectory: per image the figures of `measure`, the tracker after the last image, its result."""
+
+    rows: list[dict[str, float]]
+    tracker: GeneralTracker
+    last: GeneralResult
+
+
+def measure(render: Callable[[np.ndarray], np.ndarray], config: GeneralConfig) -> Run:
+    """Cold start on the frame `render(I₄)`, then the images of the exact-geometry decoupled run (every 2nd of the
+    first 20, every 10th, the last) tracked with `config`; per image: index, |ε̄|, warp RMS error (px), |Δε̄|,
+    |Δε̄| / tolerance, converged, the ρ* shape error (`rho_shape_error`)."""
     saddle = paper_saddle()
-    render = renderer(spec, texture)
     trajectory = run_synthetic("ddvs")
     law = ControlLaw(ControlConfig("ddvs", gains=0.4, stop_threshold=1e-3), INTR)
     x, y, w, h = ROI
     u, v = np.meshgrid(np.arange(x, x + w, dtype=float), np.arange(y, y + h, dtype=float))
     p = np.c_[u.ravel(), v.ravel()]
     rho = parallax_map(saddle, INTR, np.eye(4))[p[:, 1].astype(int), p[:, 0].astype(int)]
-    interpolation = "bspline" if spec.endswith("/bspline") else "keys"
-    tracker = GeneralTracker(render(np.eye(4)), ROI, GeneralConfig(interpolation=interpolation))
+    tracker = GeneralTracker(render(np.eye(4)), ROI, config)
     rows = []
     for k in [*range(0, 20, 2), *range(20, trajectory.images, 10), trajectory.images - 1]:
         T = pose(trajectory.rotations[k], trajectory.positions[k])
@@ -96,7 +105,7 @@ def measure(spec: str, texture: np.ndarray) -> list[dict[str, float]]:
         rows.append({"image": k, "norm": norm, "warp_px": warp, "error": err,
                      "relative": err / max(0.01 * norm, 1e-4), "converged": bool(result.converged),
                      "rho_shape": rho_shape_error(tracker.basis, result.rho_coeffs, p, rho)})
-    return rows
+    return Run(rows, tracker, result)
 
 
 def main() -> None:
@@ -107,7 +116,8 @@ def main() -> None:
     texture = cv2.imread(str(dataset_image("oxford/graf/img1.png")), cv2.IMREAD_GRAYSCALE).astype(np.float32)
     report = {}
     for spec in args.renders:
-        rows = report[spec] = measure(spec, texture)
+        interpolation = "bspline" if spec.endswith("/bspline") else "keys"
+        rows = report[spec] = measure(renderer(spec, texture), GeneralConfig(interpolation=interpolation)).rows
         worst = max(rows, key=lambda r: r["relative"])
         early = max(r["relative"] for r in rows if r["image"] <= 180)
         late = [r for r in rows if r["image"] >= 380]

@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks.general_accuracy import measure
 from ddvs_service.camera import Intrinsics
 from ddvs_service.cli import main
-from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general import (
@@ -82,27 +82,16 @@ def test_basis_fixes_the_plane_gauge() -> None:
 
 
 def track_trajectory(render_frame: Callable[[np.ndarray], np.ndarray], config: GeneralConfig | None = None):
-    """Cold start at the paper's initial displacement (no ρ* prior, G from the global initialiser), then every 2nd
-    image of the first 20 and every 10th to convergence of the exact-geometry decoupled run, frames from
-    `render_frame(T_world_cam)`: (images, worst warp RMS error over the ROI (px), per image the error of the control
-    error (16) from the estimate relative to the criterion's tolerance max(1 % of its norm, 1e-4), the tracker,
-    the last result). Every frame must converge."""
-    saddle = paper_saddle()
-    trajectory = run_synthetic("ddvs")  # exact geometry: the poses of the paper's loop
-    law = ControlLaw(ControlConfig("ddvs", gains=0.4, stop_threshold=1e-3), INTR)
-    tracker = GeneralTracker(render_frame(np.eye(4)), ROI, config or GeneralConfig())
-    frames = [*range(0, 20, 2), *range(20, trajectory.images, 10), trajectory.images - 1]
-    worst_rms, errors = 0.0, []
-    for k in frames:
-        T = pose(trajectory.rotations[k], trajectory.positions[k])
-        result = tracker.track(render_frame(T))
-        assert result.converged, f"frame {k}: {result.reason}"
-        worst_rms = max(worst_rms, warp_rms(result, saddle, T))
-        gt = ground_truth(saddle, INTR, np.eye(4), T)
-        exact = law.error(gt.G, gt.e, gt.rho)
-        estimated = law.error(result.G, result.e, result.rho_at(CONTROL_POINT))
-        errors.append(float(np.linalg.norm(estimated - exact) / max(0.01 * np.linalg.norm(exact), 1e-4)))
-    return frames, worst_rms, errors, tracker, result
+    """The paper's trajectory tracked from a cold start on frames `render_frame(T_world_cam)`
+    (`benchmarks.general_accuracy.measure`: no ρ* prior, G from the global initialiser, every 2nd image of the first
+    20 and every 10th to convergence of the exact-geometry decoupled run): (images, worst warp RMS error over the
+    ROI (px), per image the error of the control error (16) from the estimate relative to the criterion's tolerance
+    max(1 % of its norm, 1e-4), the tracker, the last result). Every frame must converge."""
+    run = measure(render_frame, config or GeneralConfig())
+    failed = [row["image"] for row in run.rows if not row["converged"]]
+    assert not failed, f"frames {failed} did not converge"
+    return ([row["image"] for row in run.rows], max(row["warp_px"] for row in run.rows),
+            [row["relative"] for row in run.rows], run.tracker, run.last)
 
 
 @pytest.mark.slow

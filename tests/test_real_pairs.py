@@ -3,12 +3,7 @@ issue's 1 px corner error keep meeting it. Bikes 1→5 and 1→6 (strongest defo
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.real_pairs import ROI_SIZES, corner_error, ground_truth, load
 from ddvs_service.registration.planar import register
