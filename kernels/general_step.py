@@ -73,8 +73,9 @@ PARAMS_BANDS = 22  # 1: number of row bands
 PARAMS_GAINS = PLANAR_GAINS  # 16 at most: gain node values, row-major
 PARAMS_ROI = 40  # 4: u0, v0, u1, v1 inclusive
 PARAMS_BNORM = 44  # 3: cx, cy, s of the parallax-basis coordinates (x, y) = (p − c) / s (level pixels)
-PARAMS_RHO = 48  # 16: monomial coefficients a_m of ρ*, m = i·(degree + 1) + j for x^i y^j
-PARAMS_BASIS = 64  # n_rho × 16: basis coefficients B_km (same monomial order)
+PARAMS_DOMAIN = 48  # 4: x_lo, y_lo, x_hi, y_hi: where samples may fall (level pixels; a B-spline window's exact part)
+PARAMS_RHO = 52  # 16: monomial coefficients a_m of ρ*, m = i·(degree + 1) + j for x^i y^j
+PARAMS_BASIS = 68  # n_rho × 16: basis coefficients B_km (same monomial order)
 N_GEOMETRIC = 8
 N_EPIPOLE = 3
 ROW_TILE = 128  # columns per tile of a band's row: the length of the thread-local |r| buffer
@@ -158,17 +159,19 @@ def _weights(t: ti.f32, spline: ti.template()):
 
 
 @ti.func
-def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32, spline: ti.template()):
+def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32, spline: ti.template(), domain: ti.template()):
     """Bicubic sample at column `x`, row `y` and its exact gradient (grey levels per pixel): Keys cubic convolution of
     the image `img`, or, when `spline`, the cubic B-spline whose coefficients `img` holds (`kernels.bspline`).
 
     Returns `(value, d/dx, d/dy, ok)`; `ok = 0` (zeros) unless the 4×4 taps lie inside, i.e. `1 ≤ x, y` and
-    `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences). Branch-free:
+    `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences), and the point
+    lies in `domain = (x_lo, y_lo, x_hi, y_hi)` (where a windowed prefilter left exact coefficients). Branch-free:
     the taps are read at the clamped point (always in bounds) and the result is selected, so that a pixel loop
     calling it can be vectorised."""
     h = img.shape[0]
     w = img.shape[1]
-    inside = (x >= 1.0) & (y >= 1.0) & (x <= w - 2.0) & (y <= h - 2.0)
+    inside = ((x >= ti.max(1.0, domain[0])) & (y >= ti.max(1.0, domain[1])) & (x <= ti.min(w - 2.0, domain[2]))
+              & (y <= ti.min(h - 2.0, domain[3])))
     xc = ti.min(ti.max(x, 1.0), w - 2.0)
     yc = ti.min(ti.max(y, 1.0), h - 2.0)
     x0 = ti.max(ti.min(ti.cast(ti.floor(xc), ti.i32), w - 3), 1)  # integer clamp too: NaN casts stay in bounds
@@ -224,17 +227,18 @@ def warp_point(G: ti.template(), e: ti.template(), u: ti.i32, v: ti.i32, rho: ti
 def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.template(), rho_coeffs: ti.template(),
                 span: ti.template(), gains: ti.template(), v: ti.i32, u: ti.i32, yp: ti.template(), bcx: ti.f32,
                 bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_rows: ti.template(), grid_cols: ti.template(),
-                spline: ti.template()):
+                spline: ti.template(), domain: ti.template()):
     """Everything one reference pixel `(u, v)` contributes, before the Jacobian: `(ok, r, I(w), ∂I/∂x, ∂I/∂y, x, y,
     1/Z, ρ, ∂ρ/∂u, ∂ρ/∂v, x-powers, ∂I*/∂u, ∂I*/∂v, S, φ)` (`yp`: powers of the row's basis coordinate).
 
-    `ok` is false where a reference tap is masked, `Z ≤ 1e-8` or the 4×4 taps leave `cur`; the image values and
+    `ok` is false where a reference tap is masked, `Z ≤ 1e-8` or the 4×4 taps leave `cur` or the sample leaves
+    `domain` (`cubic_sample`); the image values and
     gradients are then 0 (finite, so that a weight of 0 cancels them). Loads and selects only: vectorisable."""
     ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
     xp = _powers((u - bcx) / bs, degree)
     rho, rho_x, rho_y = parallax_at(rho_coeffs, xp, yp, degree)
     x, y, iz, ok_z = warp_point(G, e, u, v, rho)
-    c0, cgx, cgy, inside = cubic_sample(cur, x, y, spline)
+    c0, cgx, cgy, inside = cubic_sample(cur, x, y, spline, domain)
     ok = ref_ok & ok_z & (inside == 1)
     gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
     r = gain * c0 + beta - ir
@@ -286,6 +290,7 @@ def general_step(
     span = load_vector(params, PARAMS_SPAN, 4)
     gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
     basis = load_vector(params, PARAMS_BASIS, MAX_MONOMIALS * max(NR, 1))
+    domain = load_vector(params, PARAMS_DOMAIN, 4)
     for it in range(nb * 512):  # one band per 512-iteration block (PLATFORM-NOTES)
         if it % 512 == 0:
             b = it // 512
@@ -305,7 +310,7 @@ def general_step(
                     for u in range(ut0, ut1 + 1):
                         ok, r, c0, cgx, cgy, x, y, iz, rho, rho_u, rho_v, xp, gxr, gyr, gain, phi = pixel_terms(
                             ref, cur, G, e, rho_coeffs, span, gains, v, u, yp, bcx, bs, beta, degree, grid_rows,
-                            grid_cols, spline)
+                            grid_cols, spline, domain)
                         # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
                         pxu = G[0] + rho_u * e[0]
                         pyu = G[3] + rho_u * e[1]
@@ -396,39 +401,3 @@ def general_step(
                     acc += racc
             store_band(work, acc, hist, b)
     finish_sums(work, NACC, nb)
-
-
-@ti.kernel
-def render_general(
-    cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    params: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    out: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    degree: ti.template(),
-    grid_rows: ti.template(),
-    grid_cols: ti.template(),
-):
-    """`out[v − v0, u − u0] = S(p*) · I(w(p*)) + β` over the ROI under the warp (2); NaN where it leaves `cur`."""
-    D1 = ti.static(degree + 1)
-    u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
-    v0 = ti.cast(params[PARAMS_ROI + 1], ti.i32)
-    bcx = params[PARAMS_BNORM + 0]
-    bcy = params[PARAMS_BNORM + 1]
-    bs = params[PARAMS_BNORM + 2]
-    for rr, cc in ti.ndrange(out.shape[0], out.shape[1]):
-        u = ti.cast(u0 + cc, ti.f32)
-        v = ti.cast(v0 + rr, ti.f32)
-        xp = _powers((u - bcx) / bs, degree)
-        yp = _powers((v - bcy) / bs, degree)
-        rho = 0.0
-        for i in ti.static(range(D1)):
-            for j in ti.static(range(D1)):
-                rho += params[PARAMS_RHO + i * D1 + j] * xp[i] * yp[j]
-        X, Y, Z = homography_apply(load_vector(params, PARAMS_G, 9), u, v)
-        Z += rho * params[PARAMS_E + 2]
-        iz = 1.0 / ti.select(Z > 1e-8, Z, 1.0)
-        val, _gx, _gy, ok = cubic_sample(cur, (X + rho * params[PARAMS_E]) * iz, (Y + rho * params[PARAMS_E + 1]) * iz,
-                                         False)
-        ok = ok if Z > 1e-8 else 0
-        gain, _phi = gain_at(load_vector(params, PARAMS_SPAN, 4),
-                             load_vector(params, PARAMS_GAINS, grid_rows * grid_cols), u, v, grid_rows, grid_cols)
-        out[rr, cc] = gain * val + params[PARAMS_BETA] if ok == 1 else ti.math.nan

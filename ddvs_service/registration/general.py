@@ -49,6 +49,7 @@ from ddvs_service.registration.planar import (
     remaining_motion,
     symmetric_index,
 )
+from ddvs_service.registration.spline_window import UNRESTRICTED, SplineWindow
 from kernels.launch import Prepared
 
 F64 = NDArray[np.float64]
@@ -64,6 +65,7 @@ FLAG_LOW_TEXTURE = "low_texture"  # degenerate normal equations
 FLAG_OCCLUSION = "occlusion"  # too few inliers / too little of the ROI visible
 FLAG_LOST = "lost"  # the tracker lost the target and will re-acquire on the next frame
 FLAG_DIVERGED = "diverged"
+SPLINE_MARGIN = 0.1  # B-spline window margin around the warped ROI, × the ROI's larger side (`spline_window`)
 
 
 @dataclass(frozen=True)
@@ -84,8 +86,9 @@ class GeneralConfig:
       error dominates the residual. Worst error of (16) along the paper's trajectory, × the criterion's tolerance
       (benchmarks/general_accuracy.py): anti-aliased frames (texture blurred by 2 texels, 4×4 rays per pixel)
       0.80 with the B-spline vs 2.71 with Keys; frames with a 0.7 px optical blur 1.80 vs 5.0; point-sampled
-      (aliased) frames 8.7 vs 13.3, but 1.05 vs 0.76 on their first 180 images. The B-spline's prefilter of the
-      whole current image costs ~0.8 ms per frame (tracking frame 1.5 → 2.4 ms on 2 cores).
+      (aliased) frames 8.7 vs 13.3, but 1.05 vs 0.76 on their first 180 images. The B-spline's prefilter, only over
+      a window around the warped ROI (`spline_window`; the whole 550×418 image took ~0.7 ms), brings a tracking
+      frame from 1.3–1.8 ms (Keys) to 2.2 ms on 2 cores.
     """
 
     base: RegistrationConfig = field(default_factory=RegistrationConfig)
@@ -235,7 +238,8 @@ class GeneralRegistration:
         self._work: dict[int, NDArray[np.float32]] = {}
         self._sym: dict[int, NDArray[np.intp]] = {}
         self._steps: dict[tuple[int, bool], tuple[F32, Prepared]] = {}  # prepared launches, with their `cur`
-        self._spline: tuple[F32, Prepared] | None = None  # B-spline coefficients buffer and its prefilter launch
+        self._spline = (SplineWindow(self.planar.shape, SPLINE_MARGIN * max(self.roi[2], self.roi[3]))
+                        if config.interpolation == "bspline" else None)
         x, y, w, h = self.roi
         u, v = np.meshgrid(np.linspace(x, x + w - 1, 16), np.linspace(y, y + h - 1, 12))
         # Points where steps and parallax are measured (homogeneous, full resolution), and the basis there.
@@ -331,6 +335,8 @@ class GeneralRegistration:
         p[k.PARAMS_NORM : k.PARAMS_NORM + 3] = level.norm
         p[k.PARAMS_BNORM : k.PARAMS_BNORM + 3] = self.basis.level_norm(level.D)
         p[k.PARAMS_ROI : k.PARAMS_ROI + 4] = level.bounds
+        spline = level.index == 0 and self._spline is not None and self._spline.domain is not None
+        p[k.PARAMS_DOMAIN : k.PARAMS_DOMAIN + 4] = self._spline.domain if spline else UNRESTRICTED
         p[k.PARAMS_SPAN : k.PARAMS_SPAN + 4] = level.span
         p[k.PARAMS_BETA] = state.beta
         p[k.PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
@@ -344,26 +350,20 @@ class GeneralRegistration:
 
     def _load_current(self, current: F32, n_levels: int) -> list[F32]:
         """The first `n_levels` levels of the current image's pyramid, in the planar engine's fixed buffers (this
-        object runs the planar stage on the same buffers), so that the step launches can be prepared once; with
-        `config.interpolation` "bspline", level 0 is given as its cubic B-spline coefficients (`kernels.bspline`)."""
-        pyramid = self.planar.load_current(current, n_levels)
-        if self.config.interpolation != "bspline":
-            return pyramid
-        if self._spline is None:
-            from kernels.bspline import bspline_coefficients, check_buffers
-
-            coefficients = np.zeros_like(pyramid[0])
-            check_buffers(pyramid[0], coefficients)
-            self._spline = coefficients, Prepared(bspline_coefficients, pyramid[0], coefficients)
-        self._spline[1]()
-        return [self._spline[0], *pyramid[1:]]
+        object runs the planar stage on the same buffers), so that the step launches can be prepared once. With
+        `config.interpolation` "bspline", level 0 is sampled through B-spline coefficients prefiltered around the
+        warped ROI when a launch needs them (`_normal_equations`, `spline_window`)."""
+        if self._spline is not None:
+            self._spline.invalidate()
+        return self.planar.load_current(current, n_levels)
 
     def _normal_equations(
         self, level: Any, cur: F32, state: _State, with_rho: bool
     ) -> tuple[F64, F64, NDArray[np.float64]]:
-        """One kernel launch at the state on the current level image `cur` (`_load_current`: B-spline coefficients
-        at level 0 with `config.interpolation` "bspline"): (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr², median |r|]).
-        The launch is prepared once per (level, `with_rho`, buffer) (`kernels.launch.Prepared`)."""
+        """One kernel launch at the state on the current level image `cur`: (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr²,
+        median |r|]). With `config.interpolation` "bspline", level 0 is sampled through the B-spline coefficients of
+        `cur` over a window around the ROI warped by the state (`spline_window`; samples outside its exact domain
+        count as invalid). The launch is prepared once per (level, `with_rho`, buffer) (`kernels.launch.Prepared`)."""
         from kernels.general_step import general_step, n_acc, n_columns, work_size
 
         n = n_columns(self.basis.size, with_rho, *self.grid)
@@ -371,7 +371,12 @@ class GeneralRegistration:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
             self._sym[n] = symmetric_index(n)
         key = (level.index, with_rho)
-        spline = level.index == 0 and self.config.interpolation == "bspline"
+        spline = level.index == 0 and self._spline is not None
+        if spline:
+            assert self._spline is not None
+            probe = self._probe_warp(state.G, state.e, state.c)
+            lo, hi = probe.min(axis=0), probe.max(axis=0)
+            cur = self._spline.covering(cur, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
         if key not in self._steps or self._steps[key][0] is not cur:
             self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
                                               self._work[n], self.basis.degree, self.basis.size, with_rho,
