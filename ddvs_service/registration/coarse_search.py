@@ -28,7 +28,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from ddvs_service.registration.global_cost import sample_through
-from ddvs_service.registration.global_fourier_mellin import dft_size, peaks
+from ddvs_service.registration.global_fourier_mellin import dft_size, peaks, similarity
 from kernels.planar_step import MASK_LIMIT
 
 F32 = NDArray[np.float32]
@@ -37,13 +37,6 @@ ROTATIONS_DEG = (-20.0, -10.0, 0.0, 10.0, 20.0)  # the similarity Gauss-Newton t
 REACH = 0.5  # searched shifts: up to this fraction of the ROI's larger side (level pixels) along each axis
 VARIANCE_FLOOR = 0.05  # a window position whose standard deviation is below this × the window's is not trusted
 FULL = 1.0 - 1e-4  # a sampled usable-map value at least this: all four bilinear neighbours usable
-
-
-def rigid(theta: float, centre: tuple[float, float], destination: tuple[float, float]) -> F64:
-    """The warp that turns by `theta` (radians) about `centre` and moves `centre` to `destination` (3×3)."""
-    c, s = math.cos(theta), math.sin(theta)
-    (cx, cy), (dx, dy) = centre, destination
-    return np.array([[c, -s, dx - (c * cx - s * cy)], [s, c, dy - (s * cx + c * cy)], [0.0, 0.0, 1.0]])
 
 
 def _usable(reference: F32, bounds: tuple[int, int, int, int]) -> F32:
@@ -77,7 +70,8 @@ def coarse_alignment(reference: F32, current: F32, bounds: tuple[int, int, int, 
     half = (math.ceil(max(0.5 * (u1 - u0) * abs(math.cos(t)) + 0.5 * (v1 - v0) * abs(math.sin(t)) for t in thetas)),
             math.ceil(max(0.5 * (u1 - u0) * abs(math.sin(t)) + 0.5 * (v1 - v0) * abs(math.cos(t)) for t in thetas)))
     box = (2 * half[1] + 1, 2 * half[0] + 1)
-    to_reference = np.stack([np.linalg.inv(rigid(t, centre, (float(half[0]), float(half[1])))) for t in thetas])
+    # Box pixel → reference pixel: the inverse of turning by θ about `centre` onto the box centre `half`.
+    to_reference = np.stack([similarity(-t, 1.0, (float(half[0]), float(half[1])), centre) for t in thetas])
     usable = _usable(reference, bounds)
     values, _ = sample_through(np.ascontiguousarray(reference * usable), to_reference, box, (0.0, 0.0))
     cover, _ = sample_through(usable, to_reference, box, (0.0, 0.0))
@@ -121,4 +115,4 @@ def coarse_alignment(reference: F32, current: F32, bounds: tuple[int, int, int, 
     (r, c), = peaks(ncc[best].astype(np.float32), 1, radius=1, allowed=allowed[best])
     r = r - shape[0] if r > ranges[best][0] + 0.5 else r
     c = c - shape[1] if c > ranges[best][1] + 0.5 else c
-    return rigid(float(thetas[best]), centre, (x0 + c + half[0], y0 + r + half[1]))
+    return similarity(float(thetas[best]), 1.0, centre, (x0 + c + half[0], y0 + r + half[1]))
