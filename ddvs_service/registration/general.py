@@ -371,12 +371,12 @@ class GeneralRegistration:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
             self._sym[n] = symmetric_index(n)
         key = (level.index, with_rho)
-        spline = level.index == 0 and self._spline is not None
-        if spline:
-            assert self._spline is not None
+        window = self._spline if level.index == 0 else None
+        spline = window is not None
+        if window is not None:
             probe = self._probe_warp(state.G, state.e, state.c)
             lo, hi = probe.min(axis=0), probe.max(axis=0)
-            cur = self._spline.covering(cur, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
+            cur = window.covering(cur, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
         if key not in self._steps or self._steps[key][0] is not cur:
             self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
                                               self._work[n], self.basis.degree, self.basis.size, with_rho,
