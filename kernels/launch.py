@@ -28,8 +28,7 @@ class Prepared:
 
     def __init__(self, kernel: Callable[..., Any], *args: Any) -> None:
         self._args = args  # keeps the buffers alive
-        self._plain = lambda: kernel(*args)
-        self._launch: Callable[[], None] = self._plain
+        self._launch: Callable[[], None] = lambda: kernel(*args)  # the plain call: non-CPU backends keep it
         if impl.current_cfg().arch != ti.cpu:
             return
         primal = kernel._primal  # type: ignore[attr-defined]  # taichi.lang.kernel_impl.Kernel
@@ -55,8 +54,7 @@ class Prepared:
             slot += 1
         prog = impl.get_runtime().prog
         compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
-        self._context = context
-        self._launch = lambda: prog.launch_kernel(compiled, context)
+        self._launch = lambda: prog.launch_kernel(compiled, context)  # the closure keeps the context alive
 
     def __call__(self) -> None:
         """Launch the kernel on the bound buffers' current contents."""
