@@ -56,11 +56,15 @@ def corner_error(H_true: np.ndarray, H_est: np.ndarray, roi: tuple[int, int, int
     return float(np.max(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)))
 
 
-def ecc(ref: np.ndarray, cur: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
-    """`cv2.findTransformECC` from identity; returns H (reference → current pixels). Raises cv2.error on failure."""
+def ecc(
+    ref: np.ndarray, cur: np.ndarray, roi: tuple[int, int, int, int], H0: np.ndarray | None = None
+) -> np.ndarray:
+    """`cv2.findTransformECC` from `H0` (reference → current pixels; identity by default); returns H (reference →
+    current pixels). Raises cv2.error on failure."""
     x, y, w, h = roi
     template = np.ascontiguousarray(ref[y : y + h, x : x + w])
-    W = np.array([[1, 0, x], [0, 1, y], [0, 0, 1]], dtype=np.float32)
+    start = np.eye(3) if H0 is None else H0 / H0[2, 2]
+    W = (start @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])).astype(np.float32)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-6)
     _, W = cv2.findTransformECC(template, cur, W, cv2.MOTION_HOMOGRAPHY, criteria, None, 5)
     T = np.array([[1.0, 0, -x], [0, 1.0, -y], [0, 0, 1.0]])  # reference pixels → template pixels
