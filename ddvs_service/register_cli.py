@@ -8,6 +8,11 @@ Output keys: `H` (3×3, reference → current pixels, 0-based pixel centres, H[2
 (`ddvs_service.registration.general.register_general`: ρ* estimated with several epipole starts); its extra keys:
 `e` (epipole, pixels, same scale as `G`), `rho_coeffs`, `rho_degree`, `rho_std`, `parallax_px`, `margin`, `flags`.
 
+`--gamma G` registers irradiance `255 (I / 255)^G` (the camera's response; `RegistrationConfig.gamma`);
+`--defocus R` blurs the reference's irradiance by a uniform disk of radius R pixels (`RegistrationConfig.defocus_px`),
+`--defocus search` estimates R (`registration.defocus.register_defocus`, planar model only) and adds `defocus_px`
+and `defocus_trials` (`[radius, relative residual, converged]` per run) to the output.
+
 `--init global` starts from the global initialiser (`registration.global_init`: any in-plane rotation, scale
 0.6–1.6, the ROI anywhere in the image) instead of a homography file; its summary is added under `global_init`.
 When it reports LOST nothing is refined: the output is `{"global_init": ..., "converged": false, "reason": ...}`
@@ -30,6 +35,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--levels", type=int, help="pyramid levels at most (default: as many as the ROI size allows)")
     parser.add_argument("--gain-grid", default="1x1", metavar="RxC", help="gain grid rows x cols (default 1x1)")
     parser.add_argument("--robust", choices=("huber", "tukey", "none"), default="huber", help="M-estimator")
+    parser.add_argument("--gamma", type=float, default=1.0,
+                        help="camera response exponent: register irradiance 255 (I/255)^GAMMA (default 1: as is)")
+    parser.add_argument("--defocus", default="0", metavar="R|search",
+                        help="relative defocus of the current image: disk radius in pixels applied to the "
+                             "reference, or 'search' to estimate it (planar model; default 0)")
     parser.add_argument("--model", choices=("planar", "general"), default="planar",
                         help="planar homography (default) or the general model with epipole and parallax field")
     parser.add_argument("--rho-degree", type=int, choices=(2, 3), default=2,
@@ -46,7 +56,18 @@ def _grid(text: str) -> tuple[int, int]:
     return int(rows), int(cols)
 
 
+def _defocus(text: str) -> float | None:
+    """`--defocus`: a radius in pixels, or None for 'search'."""
+    if text == "search":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--defocus must be a radius in pixels or 'search', got {text!r}") from None
+
+
 def run(args: argparse.Namespace) -> int:
+    import math
     import time
 
     import cv2
@@ -64,23 +85,35 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError(f"cannot read image {path!r}")
             images.append(to_grey(img))
         start = time.perf_counter()  # the registration's wall time includes a global initialisation
-        init_summary = None
+        extra: dict[str, object] = {}
         if args.init == "global":
             from ddvs_service.registration.global_init import register_global
 
             h, w = images[0].shape
             found = register_global(images[0], images[1], (0, 0, w, h) if args.roi is None else tuple(args.roi))
-            init_summary = found.to_json_dict()
+            extra["global_init"] = found.to_json_dict()
             if found.G is None:
-                print(json.dumps({"global_init": init_summary, "converged": False, "reason": found.reason}))
+                print(json.dumps({**extra, "converged": False, "reason": found.reason}))
                 return 1
             G0 = found.G
         else:
             G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
         levels = {} if args.levels is None else {"levels": args.levels}
-        config = RegistrationConfig(**levels, gain_grid=_grid(args.gain_grid), robust=args.robust)
+        defocus = _defocus(args.defocus)
+        config = RegistrationConfig(**levels, gain_grid=_grid(args.gain_grid), robust=args.robust, gamma=args.gamma,
+                                    defocus_px=0.0 if defocus is None else defocus)
         roi = None if args.roi is None else tuple(args.roi)
-        if args.model == "general":
+        if defocus is None and args.model == "general":
+            raise ValueError("--defocus search estimates the defocus with the planar model; give a radius with "
+                             "--model general")
+        if defocus is None:
+            from ddvs_service.registration.defocus import register_defocus
+
+            fit = register_defocus(images[0], images[1], roi=roi, G0=G0, config=config)
+            result = fit.result
+            extra["defocus_px"] = fit.defocus_px
+            extra["defocus_trials"] = [[r, s if math.isfinite(s) else None, c] for r, s, c in fit.trials]
+        elif args.model == "general":
             from ddvs_service.registration.general import GeneralConfig, register_general
 
             result = register_general(images[0], images[1], roi=roi, G0=G0,
@@ -92,7 +125,6 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         print(json.dumps({"error": str(exc)}))
         return 2
-    extra = {} if init_summary is None else {"global_init": init_summary}
     print(json.dumps({**result.to_json_dict(), **extra, "wall_ms": round(wall_ms, 3)}))
     sys.stdout.flush()
     return 0 if result.converged else 1

@@ -33,3 +33,12 @@ def test_bad_service_config_is_named(tmp_path: Path) -> None:
 def test_unknown_interpolation_is_refused() -> None:
     with pytest.raises(ValueError, match="interpolation"):
         ServiceConfig().merged({"registration": {"interpolation": "linear"}})
+
+
+def test_camera_response_and_defocus_reach_the_engine() -> None:
+    config = ServiceConfig().merged({"registration": {"gamma": 2.2, "defocus_px": 3.5}})
+    engine = config.registration.engine_config()
+    assert (engine.gamma, engine.defocus_px) == (2.2, 3.5)
+    for bad in ({"gamma": 9.0}, {"defocus_px": -1.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            ServiceConfig().merged({"registration": bad}).check()

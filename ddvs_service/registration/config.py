@@ -8,6 +8,8 @@ from typing import Literal
 RobustLoss = Literal["huber", "tukey", "none"]
 ROBUST_CODES: dict[str, int] = {"none": 0, "huber": 1, "tukey": 2}
 MAX_GAIN_NODES_PER_AXIS = 4
+MIN_GAMMA, MAX_GAMMA = 0.2, 5.0  # camera response exponents accepted
+MAX_DEFOCUS_PX = 16.0  # largest relative defocus radius accepted (full-resolution pixels)
 PIXELS_PER_BAND = 16384  # ROI pixels per row band of a step kernel's reduction (see `bands`)
 
 
@@ -38,6 +40,15 @@ class RegistrationConfig:
     - `predict_motion`: the `Tracker` starts a frame from the constant-velocity extrapolation of the last two good
       estimates (falling back to the last estimate when that fails); off: from the last estimate.
     - `max_step_fraction`: an update moving a corner by more than this fraction of the ROI size is scaled down.
+    - `gamma`: the camera's response exponent. The engine compares irradiance `255 (I / 255)^γ`, not the encoded
+      grey levels `I` (1 = as they are; ≈ 2.2 for sRGB-like cameras): defocus blurs irradiance, and compared in
+      encoded levels a sharp reference and a defocused current image disagree around bright structure, which moves
+      the optimum (bikes 1→6, 200×150 ROI: 2.46 px from the ground truth at γ = 1, 0.88 px at 2.2;
+      `benchmarks/cost_optimum.py`). `S`, `β`, residuals and σ are then in irradiance units. On strongly darkened
+      frames γ > 1 leaves few irradiance levels (leuven 1→6 at 200×150: 1.00 → 1.28 px).
+    - `defocus_px`: the current frames' defocus relative to the reference, the radius (full-resolution pixels) of
+      the uniform disk that blurs the reference's irradiance before its pyramid is built; 0 = none.
+      `registration.defocus.register_defocus` estimates it for a pair.
     - `bands`: the most row bands of the reduction (parallel work items), 1…32; a level uses one band per
       `PIXELS_PER_BAND` ROI pixels (`bands_for`): on small ROIs handing bands to threads costs more than it saves
       (35×35: 0.15 ms per launch with one band, 0.25 ms with eight).
@@ -58,6 +69,8 @@ class RegistrationConfig:
     scale_floor: float = 0.5
     min_level_size: int = 16
     bands: int = 8
+    gamma: float = 1.0
+    defocus_px: float = 0.0
 
     def bands_for(self, n_pixels: int) -> int:
         """Row bands for a level of `n_pixels` ROI pixels: one per `PIXELS_PER_BAND`, between 1 and `bands`."""
@@ -88,5 +101,9 @@ class RegistrationConfig:
             raise ValueError(f"scale_floor must be > 0 grey levels, got {self.scale_floor}")
         if self.min_level_size < 8:
             raise ValueError(f"min_level_size must be ≥ 8 pixels, got {self.min_level_size}")
+        if not MIN_GAMMA <= self.gamma <= MAX_GAMMA:
+            raise ValueError(f"gamma must be in {MIN_GAMMA}..{MAX_GAMMA}, got {self.gamma}")
+        if not 0.0 <= self.defocus_px <= MAX_DEFOCUS_PX:
+            raise ValueError(f"defocus_px must be in 0..{MAX_DEFOCUS_PX} pixels, got {self.defocus_px}")
         if not 1 <= self.bands <= 32:
             raise ValueError(f"bands must be in 1..32, got {self.bands}")

@@ -1,4 +1,4 @@
-"""Input images of the registration engine: checks, grey conversion and pyramids.
+"""Input images of the registration engine: checks, grey conversion, irradiance and pyramids.
 
 Images are `[row, col]` arrays; inside the engine they are float32 grey levels (uint8 values kept as 0…255).
 Level-l pixel coordinates relate to full-resolution ones by `p_l = D_l p_0` with
@@ -57,3 +57,23 @@ def build_pyramid(image: F32, levels: int) -> list[F32]:
         downsample2(src, dst)
         pyramid.append(dst)
     return pyramid
+
+
+def irradiance(image: F32, gamma: float, defocus_px: float = 0.0) -> F32:
+    """`image` (float32 grey levels, not modified) as the engine compares it: linearised by the camera response
+    `255 (I / 255)^gamma`, then blurred by a uniform disk of radius `defocus_px` pixels
+    (`kernels.image_formation`; `RegistrationConfig.gamma`, `.defocus_px`). A new array, or `image` itself when
+    `gamma` is 1 and `defocus_px` 0."""
+    from kernels.backend import init
+    from kernels.image_formation import defocus_kernel, disk_blur, linearise
+
+    if gamma == 1.0 and defocus_px == 0.0:
+        return image
+    init()
+    out = image.copy()
+    if gamma != 1.0:
+        linearise(out, gamma)
+    if defocus_px > 0.0:
+        sharp = out.copy()
+        disk_blur(sharp, out, defocus_kernel(defocus_px))
+    return out

@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from ddvs_service.lie import sl3_exp, sl3_normalize
 from ddvs_service.registration.coarse_search import coarse_alignment
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
-from ddvs_service.registration.images import F32, build_pyramid, checked_grey, level_matrix
+from ddvs_service.registration.images import F32, build_pyramid, checked_grey, irradiance, level_matrix
 from ddvs_service.registration.layout import ParamLayout
 from ddvs_service.registration.result import RegistrationResult
 from kernels.launch import Prepared
@@ -130,7 +130,7 @@ class PlanarRegistration:
 
         init()
         self.config = config
-        ref = checked_grey(reference, "reference").copy()
+        ref = irradiance(checked_grey(reference, "reference"), config.gamma, config.defocus_px).copy()
         self.shape = ref.shape
         self.roi = _validate_roi(roi, ref.shape)
         if mask is not None:
@@ -156,6 +156,7 @@ class PlanarRegistration:
         self._current = [np.empty_like(level) for level in self.reference]
         self._steps: dict[int, Prepared] = {}
         self._downsamples: dict[int, Prepared] = {}
+        self._linearise: Prepared | None = None
 
     def _make_levels(self, pyramid: list[F32]) -> list[_Level]:
         """Levels 0 … L − 1 whose ROI keeps at least `min_level_size` pixels per side; refuses an all-masked ROI."""
@@ -256,12 +257,19 @@ class PlanarRegistration:
         )
 
     def load_current(self, cur: F32, n_levels: int) -> list[F32]:
-        """Copy `cur` (checked, reference-sized float32) into the fixed level-0 buffer and downsample it into the next
-        `n_levels − 1` buffers (`images.build_pyramid`'s filter); returns the buffers, which the next call overwrites.
-        An engine sharing this object's buffers (the general model's) prepares its launches on them too."""
+        """Copy `cur` (checked, reference-sized float32) into the fixed level-0 buffer, linearise it there when
+        `config.gamma` ≠ 1 (`images.irradiance`; the reference's defocus is not applied to the current image) and
+        downsample it into the next `n_levels − 1` buffers (`images.build_pyramid`'s filter); returns the buffers,
+        which the next call overwrites. An engine sharing this object's buffers (the general model's) prepares its
+        launches on them too."""
+        from kernels.image_formation import linearise
         from kernels.pyramid import downsample2
 
         np.copyto(self._current[0], cur)
+        if self.config.gamma != 1.0:
+            if self._linearise is None:
+                self._linearise = Prepared(linearise, self._current[0], self.config.gamma)
+            self._linearise()
         for index in range(1, n_levels):
             if index not in self._downsamples:
                 self._downsamples[index] = Prepared(downsample2, self._current[index - 1], self._current[index])

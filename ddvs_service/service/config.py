@@ -42,7 +42,9 @@ class RegistrationSettings(_Strict):
     """The registration: `model` planar (`ρ* ≡ 0`) or general (eq. (2): `G`, `e`, `ρ*`), the engine's settings
     (`RegistrationConfig`), and the template: `roi = [x, y, w, h]` in reference pixels, or `template_size = [w, h]`
     centred on the control point when `roi` is null. `interpolation` (general model only): how the full-resolution
-    steps sample the current image, "bspline" or "keys" (`GeneralConfig.interpolation`)."""
+    steps sample the current image, "bspline" or "keys" (`GeneralConfig.interpolation`). `gamma` (the camera's
+    response exponent) and `defocus_px` (the frames' defocus relative to the reference, a disk radius in pixels):
+    `RegistrationConfig.gamma`, `.defocus_px`."""
 
     model: Literal["planar", "general"] = "planar"
     interpolation: Literal["keys", "bspline"] = "bspline"
@@ -54,6 +56,8 @@ class RegistrationSettings(_Strict):
     robust: Literal["huber", "tukey", "none"] = "huber"
     min_inlier_ratio: float = 0.5
     tracking_step_tolerance_px: float = Field(default=1e-2, gt=0)
+    gamma: float = 1.0
+    defocus_px: float = 0.0
     global_init: bool = True
     feature_source: Literal["none", "orb", "akaze"] = "none"
 
@@ -65,6 +69,8 @@ class RegistrationSettings(_Strict):
             robust=self.robust,
             min_inlier_ratio=self.min_inlier_ratio,
             tracking_step_tolerance_px=self.tracking_step_tolerance_px,
+            gamma=self.gamma,
+            defocus_px=self.defocus_px,
         )
 
 

@@ -1,0 +1,126 @@
+"""The relative defocus of a pair, estimated with the registration: `register_defocus`.
+
+A defocused lens blurs irradiance by a uniform disk (bikes img6 against img1: a disk of radius ~5.5 px, fitted by
+least squares with the ground truth). Registering a sharp reference against a defocused current image biases the
+optimum of eq. (5) and slows the ESM iteration (its Jacobian averages a sharp and a blurred gradient). The model
+`RegistrationConfig.defocus_px` blurs the reference's irradiance by the disk instead; this module finds the radius:
+it registers with radii 0, 1, 2, … pixels (each run started from the best estimate so far) and keeps the one whose
+result explains the current image best — the lowest *relative* residual, the residual RMS over the standard deviation
+of the blurred reference in the ROI (a plain residual would reward blurring everything away) — among the converged
+runs; a parabola through the best radius and its neighbours gives a fractional radius, tried last. The search stops
+once the relative residual has risen at two consecutive radii past the best.
+
+The reference is taken to be the sharper image (a servo's reference is shot at the desired pose, in focus).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.registration.planar import PlanarRegistration, Roi
+from ddvs_service.registration.result import RegistrationResult
+from kernels.planar_step import MASK_LIMIT
+
+DEFAULT_RADII = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0)  # full-resolution pixels
+RISES_TO_STOP = 2
+
+
+@dataclass(frozen=True)
+class DefocusFit:
+    """The kept registration, its defocus radius (full-resolution pixels) and relative residual, and every run as
+    `(radius, relative residual, converged)` in the order tried."""
+
+    result: RegistrationResult
+    defocus_px: float
+    relative_residual: float
+    trials: tuple[tuple[float, float, bool], ...]
+
+
+def _relative_residual(problem: PlanarRegistration, result: RegistrationResult) -> float:
+    """`result.residual_rms` over the standard deviation of the problem's (blurred) reference over its ROI."""
+    x, y, w, h = problem.roi
+    ref = problem.reference[0][y : y + h, x : x + w]
+    spread = float(ref[ref > MASK_LIMIT].std())
+    return result.residual_rms / spread if spread > 0.0 else math.inf
+
+
+def register_defocus(
+    reference: ArrayLike,
+    current: ArrayLike,
+    roi: Roi | None = None,
+    mask: ArrayLike | None = None,
+    G0: ArrayLike | None = None,
+    config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
+    radii: tuple[float, ...] = DEFAULT_RADII,
+) -> DefocusFit:
+    """`planar.register` of `current` against `reference` with the relative defocus estimated (module docstring).
+
+    Arguments as `planar.register` (`config.defocus_px` is replaced by each radius tried); `radii`: increasing radii
+    to try, full-resolution pixels. Raises ValueError on bad input, like `register`."""
+    if not radii or any(b <= a for a, b in itertools.pairwise(radii)) or radii[0] < 0.0:
+        raise ValueError(f"radii must be increasing and ≥ 0 pixels, got {radii}")
+    fits: dict[float, tuple[float, RegistrationResult]] = {}
+    trials: list[tuple[float, float, bool]] = []
+    start = None if G0 is None else np.asarray(G0, dtype=np.float64)
+
+    def attempt(radius: float) -> float:
+        problem = PlanarRegistration(reference, roi=roi, mask=mask, config=replace(config, defocus_px=radius))
+        best = _best(fits)
+        if best is None:
+            result = problem.run(current, G0=start)
+        else:
+            result = problem.run(current, G0=best[1].G, gains0=best[1].S, beta0=best[1].beta)
+        score = _relative_residual(problem, result) if result.converged else math.inf
+        fits[radius] = (score, result)
+        trials.append((radius, _relative_residual(problem, result), result.converged))
+        return score
+
+    rises, best_score = 0, math.inf
+    for radius in radii:
+        score = attempt(radius)
+        if score < best_score:
+            best_score, rises = score, 0
+        elif math.isfinite(best_score):
+            rises += 1
+            if rises >= RISES_TO_STOP:
+                break
+    vertex = _parabola_vertex(fits)
+    if vertex is not None and vertex not in fits:
+        attempt(vertex)
+    best = _best(fits)
+    if best is None:  # nothing converged: report the run at the smallest radius, flagged as it is
+        radius = min(fits)
+        return DefocusFit(fits[radius][1], radius, trials[0][1], tuple(trials))
+    radius = min(fits, key=lambda r: fits[r][0])
+    return DefocusFit(best[1], radius, best[0], tuple(trials))
+
+
+def _best(fits: dict[float, tuple[float, RegistrationResult]]) -> tuple[float, RegistrationResult] | None:
+    """The converged fit with the lowest relative residual, None when none converged."""
+    finite = [fit for fit in fits.values() if math.isfinite(fit[0])]
+    return min(finite, key=lambda fit: fit[0]) if finite else None
+
+
+def _parabola_vertex(fits: dict[float, tuple[float, RegistrationResult]]) -> float | None:
+    """Vertex of the parabola through the best converged radius and its two tried neighbours, when both are
+    converged and the best is a strict interior minimum; None otherwise."""
+    tried = sorted(fits)
+    scores = [fits[r][0] for r in tried]
+    if not any(math.isfinite(s) for s in scores):
+        return None
+    i = int(np.argmin(scores))
+    if not 0 < i < len(tried) - 1 or not (math.isfinite(scores[i - 1]) and math.isfinite(scores[i + 1])):
+        return None
+    (x0, x1, x2), (y0, y1, y2) = tried[i - 1 : i + 2], scores[i - 1 : i + 2]
+    denominator = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denominator
+    b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / denominator
+    if not a > 0.0:
+        return None
+    return round(float(min(max(-b / (2.0 * a), x0), x2)), 2)
