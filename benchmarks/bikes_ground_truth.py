@@ -9,7 +9,9 @@ engine nor the ground truth, and compares everything at the ROI corners of `real
   uncertainty: it ignores any bias of the keypoint positions under blur);
 - SIFT chain: the product `H_{N−1→N} · … · H_{1→2}` of consecutive-pair SIFT estimates (each pair differs by a small
   step of blur, so its keypoints shift less between images);
-- ours: `register` with the default `RegistrationConfig`, from identity; ECC: `real_pairs.ecc`, from identity.
+- ours: `register` with the default `RegistrationConfig`, from identity; "ours γ+d": `register_defocus` with
+  `gamma = real_pairs.CAMERA_GAMMA` (irradiance, the defocus estimated), as in `real_pairs.py`; ECC:
+  `real_pairs.ecc`, from identity.
 Every error is the largest distance (pixels of image N) between the ROI corners mapped by two estimates, each
 normalised by `H[2, 2]` (`real_pairs.corner_error`); H maps image-1 pixels to image-N pixels, 0-based pixel centres.
 If ours agrees with SIFT within ~0.5 px while the ground truth is > 1 px from both, the ground truth is the limit.
@@ -28,7 +30,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.real_pairs import ROI_SIZES, corner_error, ecc, ground_truth, load  # noqa: E402
+from benchmarks.real_pairs import CAMERA_GAMMA, ROI_SIZES, corner_error, ecc, ground_truth, load  # noqa: E402
+from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
+from ddvs_service.registration.defocus import register_defocus  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 
 SEQUENCE = "bikes"
@@ -79,7 +83,8 @@ def run() -> str:
     rng = np.random.default_rng(SEED)
     steps = {k: SiftFit(features, k - 1, k).H for k in FRAMES[1:]}
     header = ["pair", "ROI", "SIFT inliers (rms px)", "SIFT spread", "chain vs SIFT", "GT vs SIFT", "GT vs chain",
-              "ours vs SIFT", "ours vs GT", "ECC vs SIFT", "ECC vs GT", "ours vs ECC"]
+              "ours vs SIFT", "ours vs GT", "ours γ+d vs SIFT", "ours γ+d vs GT", "ECC vs SIFT", "ECC vs GT",
+              "ours vs ECC"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     chain = np.eye(3)
     for k in FRAMES[1:]:
@@ -92,6 +97,7 @@ def run() -> str:
             roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
             result = register(ref, images[k], roi=roi)
             ours = result.H / result.H[2, 2]
+            physical = register_defocus(ref, images[k], roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA)).result
             try:
                 H_ecc: np.ndarray | None = ecc(ref, images[k], roi)
             except cv2.error:
@@ -101,9 +107,11 @@ def run() -> str:
                 return "failed" if a is None else f"{corner_error(b, a, roi):.2f}"
 
             ours_text = "" if result.converged else " (not converged)"
+            physical_text = "" if physical.converged else " (not converged)"
             lines.append("| " + " | ".join([
                 f"1→{k}", f"{w}×{h}", f"{len(fit.src)} ({fit.rms_px:.2f})", f"{fit.spread(roi, rng):.2f}",
                 vs(chain, fit.H), vs(H_true, fit.H), vs(H_true, chain), vs(ours, fit.H) + ours_text, vs(ours, H_true),
+                vs(physical.H, fit.H) + physical_text, vs(physical.H, H_true),
                 vs(H_ecc, fit.H), vs(H_ecc, H_true), "failed" if H_ecc is None else vs(ours, H_ecc),
             ]) + " |")
     lines += ["", "Corner errors in pixels of image N (largest of the four ROI corners). SIFT: direct 1→N fit; "

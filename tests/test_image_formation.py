@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks.irradiance_blur import GAMMA, defocused
 from benchmarks.real_pairs import corner_error, ground_truth, load
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.defocus import register_defocus
@@ -15,8 +16,6 @@ from ddvs_service.registration.images import irradiance
 from ddvs_service.registration.planar import register
 from kernels.backend import init
 from kernels.image_formation import defocus_kernel, disk_blur, linearise
-
-GAMMA = 2.2
 
 
 def centred_roi(shape: tuple[int, ...], w: int, h: int) -> tuple[int, int, int, int]:
@@ -67,15 +66,6 @@ def test_config_refuses_out_of_range(field, value):
         RegistrationConfig(**{field: value})
 
 
-def defocused_in_irradiance(image: np.ndarray, H: np.ndarray, radius: float) -> np.ndarray:
-    """What a γ-encoding camera records of the warped scene through a lens defocused by a disk of `radius` px:
-    decode, warp, blur the irradiance, encode."""
-    E = 255.0 * (image / 255.0) ** GAMMA
-    moved = cv2.warpPerspective(E.astype(np.float32), H, (image.shape[1], image.shape[0]), flags=cv2.INTER_CUBIC)
-    blurred = cv2.filter2D(np.maximum(moved, 0.0), -1, defocus_kernel(radius), borderType=cv2.BORDER_REPLICATE)
-    return (255.0 * (blurred / 255.0) ** (1.0 / GAMMA)).astype(np.float32)
-
-
 @pytest.fixture(scope="module")
 def synthetic_pair():
     sharp = load("bikes", 1)  # the white door and window bars: bright structure on a darker wall
@@ -85,7 +75,7 @@ def synthetic_pair():
     H = np.eye(3)
     H[:2, :2] = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     H[:2, 2] = np.array([cx + 25.0, cy - 12.0]) - H[:2, :2] @ np.array([cx, cy])
-    return sharp, defocused_in_irradiance(sharp, H, 5.0), H, roi
+    return sharp, defocused(sharp, H, 5.0, GAMMA), H, roi  # what a γ-encoding camera records through the lens
 
 
 def test_defocus_in_irradiance_biases_encoded_levels(synthetic_pair):
