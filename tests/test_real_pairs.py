@@ -1,5 +1,6 @@
 """Planar registration from identity on the Oxford real pairs (`benchmarks/real_pairs.py`): the pairs that meet the
-issue's 1 px corner error keep meeting it. Bikes 1→5 and 1→6 (strongest defocus) do not; for them the cold start is
+issue's 1 px corner error with the default settings keep meeting it. Bikes 1→5 and 1→6 (strongest defocus) need the
+camera response and the defocus model (`tests/test_image_formation.py`); with the default settings the cold start is
 asserted to reach the optimum of eq. (5) that a start at the ground truth reaches (`benchmarks/cost_optimum.py`)."""
 
 from __future__ import annotations
