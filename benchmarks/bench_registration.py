@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -220,6 +221,19 @@ def write_readme_section(key: str, title: str, table: str, script: str) -> None:
     else:
         text = text.rstrip("\n") + "\n\n" + section + "\n"
     README.write_text(text)
+
+
+def table_main(doc: str, run: Callable[[], str], key: str, title: str, script: str) -> int:
+    """The `main` of a benchmark that prints one markdown table: `run()` → stdout, and with `--write-readme` into
+    its `key` section of `benchmarks/README.md` (`write_readme_section`). `doc`: the script's docstring."""
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
+    parser.add_argument("--write-readme", action="store_true", help="replace the section in benchmarks/README.md")
+    args = parser.parse_args()
+    table = run()
+    print(table)
+    if args.write_readme:
+        write_readme_section(key, title, table, script)
+    return 0
 
 
 def main() -> int:

@@ -18,7 +18,6 @@ Run: `.venv/bin/python benchmarks/cost_optimum.py [--write-readme]` (about a min
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import sys
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_registration import write_readme_section  # noqa: E402
+from benchmarks.bench_registration import table_main  # noqa: E402
 from benchmarks.real_pairs import PAIRS, ROI_SIZES, corner_error, ecc, ground_truth, load  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 
@@ -76,15 +75,8 @@ def run() -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--write-readme", action="store_true", help="replace the section in benchmarks/README.md")
-    args = parser.parse_args()
-    table = run()
-    print(table)
-    if args.write_readme:
-        write_readme_section("registration-cost-optimum", "Where the photometric optimum lies on the real pairs",
-                             table, "cost_optimum.py")
-    return 0
+    return table_main(__doc__, run, "registration-cost-optimum",
+                      "Where the photometric optimum lies on the real pairs", "cost_optimum.py")
 
 
 if __name__ == "__main__":

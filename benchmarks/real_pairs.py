@@ -19,7 +19,6 @@ Run: `.venv/bin/python benchmarks/real_pairs.py [--write-readme]` prints a markd
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -29,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_registration import write_readme_section  # noqa: E402
+from benchmarks.bench_registration import table_main  # noqa: E402
 from ddvs_service.datasets import datasets_dir  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.defocus import register_defocus  # noqa: E402
@@ -113,14 +112,7 @@ def run() -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--write-readme", action="store_true", help="replace the section in benchmarks/README.md")
-    args = parser.parse_args()
-    table = run()
-    print(table)
-    if args.write_readme:
-        write_readme_section("registration-real-pairs", "Registration on real pairs", table, "real_pairs.py")
-    return 0
+    return table_main(__doc__, run, "registration-real-pairs", "Registration on real pairs", "real_pairs.py")
 
 
 if __name__ == "__main__":
