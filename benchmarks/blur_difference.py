@@ -5,8 +5,8 @@ model outside the engine: before `register` (from identity), one image is blurre
 σ px (σ > 0: the reference, σ < 0: the current image by |σ|), for every σ of `SIZES[psf]`, and the result with the
 lowest residual RMS (grey levels, after the gain and bias of eq. (4)) among the converged ones is kept — the same rule
 for every pair. Blurring either image leaves the true homography unchanged. `--psf gaussian` (default):
-`cv2.GaussianBlur` of standard deviation σ; `--psf disk`: a uniform disk of radius σ (a defocused lens's PSF; pixel
-weights = the disk's area over each pixel), which is what bikes img6 shows (a ~5.5 px disk when the PSF is fitted by
+`cv2.GaussianBlur` of standard deviation σ; `--psf disk`: a uniform disk of radius σ (a defocused lens's PSF;
+`kernels.image_formation.defocus_kernel`), which is what bikes img6 shows (a ~5.5 px disk when the PSF is fitted by
 least squares with the ground truth).
 - Synthetic rows: Oxford boat img1 (σ 1.5 px) moved by 45 px, −30 px, 5°, 3 % scale about the 200×150 ROI centre,
   then defocused by the same PSF of size `b` px; error against the exact homography.
@@ -36,12 +36,12 @@ from benchmarks.bikes_ground_truth import SiftFit  # noqa: E402
 from benchmarks.real_pairs import PAIRS, ROI_SIZES, corner_error, ground_truth, load  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
+from kernels.image_formation import defocus_kernel  # noqa: E402
 
 SIZES = {  # px; > 0 blurs the reference, < 0 the current image
     "gaussian": (-2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0),
     "disk": (-2.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
 }
-DISK_SUBSAMPLES = 8  # per pixel and axis, for the disk's area over each pixel
 CONFIGS = {"default": RegistrationConfig(), "gain 2×2": RegistrationConfig(gain_grid=(2, 2))}
 SYNTHETIC_BLURS = (0.0, 2.0, 3.0, 4.0)  # defocus of the synthetic current image, px
 Roi = tuple[int, int, int, int]
@@ -55,24 +55,13 @@ class Fit:
     converged: bool
 
 
-def disk(radius: float) -> np.ndarray:
-    """Normalised kernel of a uniform disk of `radius` px centred on a pixel: each weight is the disk's area over that
-    pixel (DISK_SUBSAMPLES² samples)."""
-    n = int(np.ceil(radius))
-    offsets = (np.arange(DISK_SUBSAMPLES) + 0.5) / DISK_SUBSAMPLES - 0.5
-    x = (np.arange(-n, n + 1)[:, None] + offsets[None, :]).ravel()
-    inside = (x[:, None] ** 2 + x[None, :] ** 2 <= radius**2).astype(np.float64)
-    area = inside.reshape(2 * n + 1, DISK_SUBSAMPLES, 2 * n + 1, DISK_SUBSAMPLES).mean(axis=(1, 3))
-    return (area / area.sum()).astype(np.float32)
-
-
 def blurred(image: np.ndarray, size: float, psf: str) -> np.ndarray:
     """`image` blurred by the `psf` of `size` px (unchanged when `size` ≤ 0)."""
     if size <= 0:
         return image
     if psf == "gaussian":
         return cv2.GaussianBlur(image, (0, 0), size)
-    return cv2.filter2D(image.astype(np.float32), -1, disk(size), borderType=cv2.BORDER_REFLECT)
+    return cv2.filter2D(image.astype(np.float32), -1, defocus_kernel(size), borderType=cv2.BORDER_REFLECT)
 
 
 def fits(ref: np.ndarray, cur: np.ndarray, roi: Roi, config: RegistrationConfig, psf: str) -> list[Fit]:
