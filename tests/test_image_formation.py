@@ -11,7 +11,7 @@ import pytest
 from benchmarks.irradiance_blur import GAMMA, defocused
 from benchmarks.real_pairs import corner_error, ground_truth, load
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.defocus import register_defocus
+from ddvs_service.registration.defocus import DEFAULT_RADII, register_defocus
 from ddvs_service.registration.images import irradiance
 from ddvs_service.registration.planar import register
 from kernels.backend import init
@@ -164,3 +164,12 @@ def test_tracker_follows_a_defocused_stream_in_irradiance():
         result = tracker.track(defocused(sharp, H, 4.0, GAMMA))
         assert result.converged, result.reason
         assert corner_error(H, result.H, roi) < 0.1
+
+
+def test_register_defocus_on_a_textureless_pair_reports_not_converged():
+    """No radius can converge on a flat image: the fit at the smallest radius comes back flagged, no exception."""
+    flat = np.full((120, 160), 90.0, dtype=np.float32)
+    fit = register_defocus(flat, flat, roi=(40, 30, 80, 60), config=RegistrationConfig(gamma=GAMMA))
+    assert not fit.result.converged and "degenerate" in fit.result.reason
+    assert fit.defocus_px == 0.0 and np.all(np.isfinite(fit.result.G))
+    assert len(fit.trials) == len(DEFAULT_RADII) and not any(converged for _, _, converged in fit.trials)
