@@ -173,3 +173,19 @@ def test_register_defocus_on_a_textureless_pair_reports_not_converged():
     assert not fit.result.converged and "degenerate" in fit.result.reason
     assert fit.defocus_px == 0.0 and np.all(np.isfinite(fit.result.G))
     assert len(fit.trials) == len(DEFAULT_RADII) and not any(converged for _, _, converged in fit.trials)
+
+
+def test_general_model_honours_gamma_and_defocus():
+    """The general model (eq. (2)) runs on the planar engine's reference and current buffers, so it registers
+    irradiance with the reference defocused too: a planar scene defocused by 4 px in irradiance, 7 px away."""
+    from ddvs_service.registration.general import GeneralConfig, register_general
+
+    sharp = load("bikes", 1)
+    roi = centred_roi(sharp.shape, 200, 150)
+    H = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0], [0.0, 0.0, 1.0]])
+    current = defocused(sharp, H, 4.0, GAMMA)
+    result = register_general(sharp, current, roi=roi,
+                              config=GeneralConfig(base=RegistrationConfig(gamma=GAMMA, defocus_px=4.0)))
+    assert result.converged, result.reason
+    assert corner_error(H, result.G / result.G[2, 2], roi) < 0.05
+    assert np.all(np.abs(result.warp(np.array([[450.0, 300.0]])) - [456.0, 296.0]) < 0.05)
