@@ -43,10 +43,11 @@ class RegistrationConfig:
     - `gamma`: the camera's response exponent. The engine compares irradiance `255 (I / 255)^γ`, not the encoded
       grey levels `I` (1 = as they are; ≈ 2.2 for sRGB-like cameras): defocus blurs irradiance, and compared in
       encoded levels a sharp reference and a defocused current image disagree around bright structure, which moves
-      the optimum (bikes 1→6, 200×150 ROI: 2.46 px from the ground truth at γ = 1, 0.88 px at 2.2;
-      `benchmarks/cost_optimum.py`). `S`, `β`, residuals and σ are then in irradiance units. On strongly darkened
-      frames γ > 1 leaves few irradiance levels (leuven 1→6 at 200×150: 1.00 → 1.28 px). Cost: one in-place
-      launch per frame (0.33 ms at 320×240, 1.2 ms at 1000×700 on 2 cores, measured 2026-12-02).
+      the optimum (bikes 1→6, 200×150 ROI: 2.46 px from the ground truth with the defaults, 0.57 px with γ = 2.2
+      and the defocus estimated; `benchmarks/real_pairs.py`, `benchmarks/irradiance_blur.py`). `S`, `β`,
+      residuals and σ are then in irradiance units. On strongly darkened frames γ > 1 leaves few irradiance levels
+      (leuven 1→6 at 200×150: 1.00 → 1.28 px). Cost: one in-place launch per frame (0.33 ms at 320×240, 1.2 ms at
+      1000×700 on 2 cores, measured 2026-12-02).
     - `defocus_px`: the current frames' defocus relative to the reference, the radius (full-resolution pixels) of
       the uniform disk that blurs the reference's irradiance before its pyramid is built; 0 = none.
       `registration.defocus.register_defocus` estimates it for a pair. Cost: once per reference (the disk blur of a

@@ -42,6 +42,19 @@ class DefocusFit:
     trials: tuple[tuple[float, float, bool], ...]
 
 
+@dataclass(frozen=True)
+class _Run:
+    """One registration of the search: its relative residual and result."""
+
+    relative: float
+    result: RegistrationResult
+
+    @property
+    def score(self) -> float:
+        """The relative residual of a converged run; infinite otherwise (never kept)."""
+        return self.relative if self.result.converged else math.inf
+
+
 def _relative_residual(problem: PlanarRegistration, result: RegistrationResult) -> float:
     """`result.residual_rms` over the standard deviation of the problem's (blurred) reference over its ROI."""
     x, y, w, h = problem.roi
@@ -65,21 +78,19 @@ def register_defocus(
     to try, full-resolution pixels. Raises ValueError on bad input, like `register`."""
     if not radii or any(b <= a for a, b in itertools.pairwise(radii)) or radii[0] < 0.0:
         raise ValueError(f"radii must be increasing and ≥ 0 pixels, got {radii}")
-    fits: dict[float, tuple[float, RegistrationResult]] = {}
-    trials: list[tuple[float, float, bool]] = []
+    runs: dict[float, _Run] = {}  # in the order tried
     start = None if G0 is None else np.asarray(G0, dtype=np.float64)
 
     def attempt(radius: float) -> float:
         problem = PlanarRegistration(reference, roi=roi, mask=mask, config=replace(config, defocus_px=radius))
-        best = _best(fits)
+        best = _best(runs)
         if best is None:
             result = problem.run(current, G0=start)
         else:
-            result = problem.run(current, G0=best[1].G, gains0=best[1].S, beta0=best[1].beta)
-        score = _relative_residual(problem, result) if result.converged else math.inf
-        fits[radius] = (score, result)
-        trials.append((radius, _relative_residual(problem, result), result.converged))
-        return score
+            kept = runs[best].result
+            result = problem.run(current, G0=kept.G, gains0=kept.S, beta0=kept.beta)
+        runs[radius] = _Run(_relative_residual(problem, result), result)
+        return runs[radius].score
 
     rises, best_score = 0, math.inf
     for radius in radii:
@@ -90,28 +101,26 @@ def register_defocus(
             rises += 1
             if rises >= RISES_TO_STOP:
                 break
-    vertex = _parabola_vertex(fits)
-    if vertex is not None and vertex not in fits:
+    vertex = _parabola_vertex(runs)
+    if vertex is not None and vertex not in runs:
         attempt(vertex)
-    best = _best(fits)
-    if best is None:  # nothing converged: report the run at the smallest radius, flagged as it is
-        radius = min(fits)
-        return DefocusFit(fits[radius][1], radius, trials[0][1], tuple(trials))
-    radius = min(fits, key=lambda r: fits[r][0])
-    return DefocusFit(best[1], radius, best[0], tuple(trials))
+    best = _best(runs)
+    radius = min(runs) if best is None else best  # nothing converged: the smallest radius's run, flagged as it is
+    trials = tuple((r, run.relative, run.result.converged) for r, run in runs.items())
+    return DefocusFit(runs[radius].result, radius, runs[radius].relative, trials)
 
 
-def _best(fits: dict[float, tuple[float, RegistrationResult]]) -> tuple[float, RegistrationResult] | None:
-    """The converged fit with the lowest relative residual, None when none converged."""
-    finite = [fit for fit in fits.values() if math.isfinite(fit[0])]
-    return min(finite, key=lambda fit: fit[0]) if finite else None
+def _best(runs: dict[float, _Run]) -> float | None:
+    """The radius of the converged run with the lowest relative residual, None when none converged."""
+    finite = [radius for radius, run in runs.items() if math.isfinite(run.score)]
+    return min(finite, key=lambda radius: runs[radius].score) if finite else None
 
 
-def _parabola_vertex(fits: dict[float, tuple[float, RegistrationResult]]) -> float | None:
+def _parabola_vertex(runs: dict[float, _Run]) -> float | None:
     """Vertex of the parabola through the best converged radius and its two tried neighbours, when both are
     converged and the best is a strict interior minimum; None otherwise."""
-    tried = sorted(fits)
-    scores = [fits[r][0] for r in tried]
+    tried = sorted(runs)
+    scores = [runs[r].score for r in tried]
     if not any(math.isfinite(s) for s in scores):
         return None
     i = int(np.argmin(scores))
