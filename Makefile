@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test lint bench clean certs
+.PHONY: setup demo test test-fast typecheck lint bench clean certs
 
 setup:
 	@bash scripts/setup.sh
@@ -18,11 +18,21 @@ test: setup
 	@echo "[test] pytest (every test, slow ones included)"
 	$(PY) -m pytest -q
 
+# Your own loop: the same checks without the tests marked slow (a few minutes on 2 cores).
+test-fast: setup
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -q -m "not slow"
+
+typecheck: setup
+	$(VENV)/bin/mypy
+
 lint: setup
 	$(VENV)/bin/ruff check .
 
+# The speed benchmarks (benchmarks/README.md): each prints its table with the machine and its load average.
+BENCHES ?= bench_registration bench_general bench_global_init
 bench: setup
-	$(VENV)/bin/ddvs bench
+	@for b in $(BENCHES); do echo "[bench] $$b"; $(PY) benchmarks/$$b.py || exit 1; done
 
 # Development CA + per-role TLS certificates for Zenoh (docs/security.md); CERTS_DIR=... to choose where.
 CERTS_DIR ?= certs

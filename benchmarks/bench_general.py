@@ -18,17 +18,17 @@ import cv2
 import numpy as np
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.tracker import Tracker
 from sim.freeflyer import render_view
 from sim.ground_truth import ground_truth
 from sim.surfaces import paper_saddle
+from sim.textures import texture_path
 
 INTR = Intrinsics.centred(500.0, 550, 418)
 ROI = (175, 134, 200, 150)
-PHOTO = str(dataset_image("oxford/graf/img1.png"))
+PHOTO = str(texture_path("graf"))
 
 
 def frames(n: int) -> list[np.ndarray]:

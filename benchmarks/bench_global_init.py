@@ -20,7 +20,8 @@ import numpy as np
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import so3_exp
 from ddvs_service.registration.global_init import GlobalInitializer
-from ddvs_service.registration.global_scenes import TEXTURES, PlanarScene, load_texture
+from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene
+from sim.textures import TEXTURES, load_texture
 
 GOALS_MS = {320: 100.0, 640: 250.0}
 
@@ -44,7 +45,7 @@ def main() -> None:
     for width in (320, 640):
         k = width // 320
         cam = Intrinsics.centred(420.0 * k, width, 240 * k)
-        scene = PlanarScene(cam, load_texture(TEXTURES[1]))
+        scene = PlanarScene(cam, load_texture(TEXTURES[1], POSTER_BLUR_SIGMA))
         H = scene.homography(so3_exp(np.radians([-20.3, 2.17, 14.59])), np.array([0.13, -0.23, -0.08]))
         ref, cur = scene.render(), scene.render(H)
         side = 70 * k

@@ -37,13 +37,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.numpy_iteration import numpy_step  # noqa: E402
-from ddvs_service.datasets import dataset_image  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import PlanarRegistration  # noqa: E402
 from ddvs_service.registration.tracker import Tracker  # noqa: E402
+from evaluation.numpy_iteration import numpy_step  # noqa: E402
+from sim.textures import texture_path  # noqa: E402
 
-IMAGE = dataset_image("oxford/boat/img1.png")
+IMAGE = texture_path("boat")
 README = ROOT / "benchmarks" / "README.md"
 ITERATIONS = 20  # K iterations per timed call (ours and ECC)
 

@@ -37,7 +37,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ddvs_service.datasets import dataset_image  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for running as a script
     Command,
     Header,
@@ -53,11 +52,12 @@ from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for ru
     open_session,
 )
 from ddvs_service.protocol.upload import encode_upload  # noqa: E402
+from sim.textures import texture_path  # noqa: E402
 
 W, H, F = 320, 240, 420.0
 WARM_UP_FRAMES = 30
 WARM_UP_LIMIT_S = 120.0
-DATASET = dataset_image("oxford/boat/img1.png")
+DATASET = texture_path("boat")
 
 
 def scene() -> np.ndarray:
@@ -163,7 +163,7 @@ def measure(rate: float, seconds: float) -> dict:
     cfg = Path(state) / "serve.json"
     cfg.write_text(json.dumps(config))
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
-    service = subprocess.Popen([sys.executable, "-m", "ddvs_service.cli", "serve", "--config", str(cfg),
+    service = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(cfg),
                                 "--log-level", "WARNING"], env=env, cwd=ROOT)
     keys = Keys("ddvs", "bench")
     session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))

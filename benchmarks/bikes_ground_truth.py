@@ -30,10 +30,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.real_pairs import CAMERA_GAMMA, ROI_SIZES, corner_error, ecc, ground_truth, load  # noqa: E402
+from benchmarks.real_pairs import ecc  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.defocus import register_defocus  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
+from evaluation.datasets import require_datasets  # noqa: E402
+from evaluation.pairs import CAMERA_GAMMA, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 
 SEQUENCE = "bikes"
 FRAMES = range(1, 7)
@@ -94,7 +96,7 @@ def run() -> str:
         H_true = ground_truth(SEQUENCE, k)
         for w, h in ROI_SIZES:
             ref = images[1]
-            roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
+            roi = centred_roi(ref.shape, w, h)
             result = register(ref, images[k], roi=roi)
             ours = result.H / result.H[2, 2]
             physical = register_defocus(ref, images[k], roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA)).result
@@ -121,6 +123,7 @@ def run() -> str:
 
 
 def main() -> int:
+    require_datasets()
     print(run())
     return 0
 

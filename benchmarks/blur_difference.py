@@ -33,9 +33,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bikes_ground_truth import SiftFit  # noqa: E402
-from benchmarks.real_pairs import PAIRS, ROI_SIZES, corner_error, ground_truth, load  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
+from evaluation.datasets import require_datasets  # noqa: E402
+from evaluation.pairs import PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 from kernels.image_formation import defocus_kernel  # noqa: E402
 
 SIZES = {  # px; > 0 blurs the reference, < 0 the current image
@@ -86,7 +87,7 @@ def text(fit: Fit, truth: np.ndarray, roi: Roi) -> str:
 def synthetic_rows(psf: str) -> list[str]:
     texture = cv2.GaussianBlur(load("boat", 1), (0, 0), 1.5)
     w, h = ROI_SIZES[0]
-    roi = ((texture.shape[1] - w) // 2, (texture.shape[0] - h) // 2, w, h)
+    roi = centred_roi(texture.shape, w, h)
     cx, cy = roi[0] + (w - 1) / 2, roi[1] + (h - 1) / 2
     a, s = np.deg2rad(5.0), 1.03
     H = np.eye(3)
@@ -116,7 +117,7 @@ def real_rows(psf: str) -> list[str]:
                         for i, img in ((1, ref), (k, cur))}
             independent = SiftFit(features, 1, k).H
         for w, h in ROI_SIZES:
-            roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
+            roi = centred_roi(ref.shape, w, h)
             cells = [f"{seq} 1→{k}", f"{w}×{h}"]
             for config in CONFIGS.values():
                 found = fits(ref, cur, roi, config, psf)
@@ -140,6 +141,7 @@ def run(psf: str) -> str:
 
 
 def main() -> int:
+    require_datasets()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--psf", choices=sorted(SIZES), default="gaussian", help="the blur's point-spread function")
     print(run(parser.parse_args().psf))

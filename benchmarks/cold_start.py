@@ -28,9 +28,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.real_pairs import corner_error, load  # noqa: E402
 from ddvs_service.registration import planar  # noqa: E402
 from ddvs_service.registration.coarse_search import coarse_alignment  # noqa: E402
+from evaluation.datasets import require_datasets  # noqa: E402
+from evaluation.pairs import corner_error, load  # noqa: E402
 
 TEXTURES = ("boat", "graf", "wall", "bark", "trees", "ubc")
 TRIALS = 40
@@ -110,6 +111,7 @@ def timing() -> str:
 
 
 def main() -> int:
+    require_datasets()
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--timing", action="store_true", help="also time register with and without the search")
     args = parser.parse_args()

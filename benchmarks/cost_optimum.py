@@ -29,8 +29,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_registration import table_main  # noqa: E402
-from benchmarks.real_pairs import PAIRS, ROI_SIZES, corner_error, ecc, ground_truth, load  # noqa: E402
+from benchmarks.real_pairs import ecc  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
+from evaluation.datasets import require_datasets  # noqa: E402
+from evaluation.pairs import PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 
 SHIFT_PX = 16
 Roi = tuple[int, int, int, int]
@@ -45,7 +47,7 @@ def shifted(roi: Roi) -> list[Roi]:
 def row(seq: str, k: int, size: tuple[int, int]) -> str:
     ref, cur, truth = load(seq, 1), load(seq, k), ground_truth(seq, k)
     w, h = size
-    roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
+    roi = centred_roi(ref.shape, w, h)
     cold = register(ref, cur, roi=roi)
     warm = register(ref, cur, roi=roi, G0=truth)
     try:
@@ -75,6 +77,7 @@ def run() -> str:
 
 
 def main() -> int:
+    require_datasets()
     return table_main(__doc__, run, "registration-cost-optimum",
                       "Where the photometric optimum lies on the real pairs", "cost_optimum.py")
 

@@ -1,8 +1,8 @@
 """Success-rate sweep of the global initialiser over random displacements, planar and saddle targets (issue 9).
 
-Displacements (`global_scenes.random_displacement`): in-plane rotation ±180°, tilt ≤ 40°, scale 0.7–1.4, ROI shift
-≤ half the image; 320×240, f = 420 px, 70×70 ROI at the image centre, several textures of the shared datasets.
-- planar: a poster at 0.7 m (`global_scenes.PlanarScene`); the estimate is the initialiser's planar `G`.
+Displacements (`planar_scene.random_displacement`): in-plane rotation ±180°, tilt ≤ 40°, scale 0.7–1.4, ROI shift
+≤ half the image; 320×240, f = 420 px, 70×70 ROI at the image centre, the shipped textures (sim.textures).
+- planar: a poster at 0.7 m (`planar_scene.PlanarScene`); the estimate is the initialiser's planar `G`.
 - saddle: the paper's saddle (`sim.surfaces.paper_saddle`, centre 1 m ahead) ray-cast by `sim.freeflyer.render_view`;
   the initialiser's `G` starts the general model of eq. (2) (`GeneralRegistration.estimate`), compared with the
   true warp `G p* + ρ*(p*) e` of `sim.ground_truth` over the ROI.
@@ -27,15 +27,9 @@ import numpy as np
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose
 from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, InitResult
-from ddvs_service.registration.global_scenes import (
-    TEXTURES,
-    PlanarScene,
-    load_texture,
-    random_displacement,
-    roi_grid,
-    visible_fraction,
-    warp_rms,
-)
+from ddvs_service.registration.warp_distance import roi_grid, warp_rms
+from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene, random_displacement, visible_fraction
+from sim.textures import TEXTURES, load_texture
 
 CAM = Intrinsics.centred(420.0, 320, 240)
 ROI = (125, 85, 70, 70)
@@ -78,7 +72,7 @@ def _winner_quality(result: InitResult, error_of_G, tally: Tally) -> None:
 
 def sweep_planar(texture: str, init: GlobalInitializer, trials: int, seed: int) -> Tally:
     """Planar poster: success when OK and the planar G is within SUCCESS_PX of the true homography."""
-    scene = PlanarScene(CAM, load_texture(texture))
+    scene = PlanarScene(CAM, load_texture(texture, POSTER_BLUR_SIGMA))
     reference = scene.render()
     rng = np.random.default_rng(seed)
     tally = Tally()

@@ -4,11 +4,11 @@ Bikes img1 moved by the ground truth `H1toNp` (N = 4, 5, 6) and defocused by a u
 5.5 px (the radii `register_defocus` finds on the real pairs), in two ways:
 - encoded: the disk blurs the grey levels themselves;
 - irradiance: the grey levels are decoded with γ 2.2 (`255 (I / 255)^γ`), warped, blurred and encoded again — what
-  a γ-encoding camera records through a defocused lens (`defocused_in_irradiance`).
+  a γ-encoding camera records through a defocused lens (`evaluation.defocus.defocused`).
 Each current image is registered from identity on the central ROIs with the default settings, with the reference
 blurred by the same disk (`RegistrationConfig(defocus_px=r)`), and with the camera response as well
 (`gamma=2.2, defocus_px=r`). Error: the largest distance between the ROI corners mapped by the estimate and by
-`H1toNp` (`real_pairs.corner_error`), pixels; `*` = not converged.
+`H1toNp` (`evaluation.pairs.corner_error`), pixels; `*` = not converged.
 
 Run: `.venv/bin/python benchmarks/irradiance_blur.py` prints a markdown table (under a minute on 2 cores).
 """
@@ -18,28 +18,16 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.real_pairs import ROI_SIZES, corner_error, ground_truth, load  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
-from kernels.image_formation import defocus_kernel  # noqa: E402
+from evaluation.datasets import require_datasets  # noqa: E402
+from evaluation.defocus import defocused  # noqa: E402
+from evaluation.pairs import CAMERA_GAMMA, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 
-GAMMA = 2.2
 CASES = ((4, 3.5), (5, 4.5), (6, 5.5))  # bikes image N, defocus radius (px)
-
-
-def defocused(image: np.ndarray, H: np.ndarray, radius: float, gamma: float = 1.0) -> np.ndarray:
-    """`image` warped by `H` (cubic) and blurred by a uniform disk of `radius` px, in irradiance decoded with
-    `gamma` (1: the grey levels themselves), encoded again (module docstring)."""
-    E = 255.0 * (np.maximum(image, 0.0) / 255.0) ** gamma
-    moved = cv2.warpPerspective(E.astype(np.float32), H, (image.shape[1], image.shape[0]), flags=cv2.INTER_CUBIC)
-    blurred = cv2.filter2D(moved, -1, defocus_kernel(radius), borderType=cv2.BORDER_REPLICATE)
-    return (255.0 * (np.maximum(blurred, 0.0) / 255.0) ** (1.0 / gamma)).astype(np.float32)
 
 
 def run() -> str:
@@ -48,13 +36,13 @@ def run() -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for k, radius in CASES:
         H = ground_truth("bikes", k)
-        for name, gamma in (("encoded", 1.0), ("irradiance", GAMMA)):
+        for name, gamma in (("encoded", 1.0), ("irradiance", CAMERA_GAMMA)):
             current = defocused(sharp, H, radius, gamma)
             for w, h in ROI_SIZES:
-                roi = ((sharp.shape[1] - w) // 2, (sharp.shape[0] - h) // 2, w, h)
+                roi = centred_roi(sharp.shape, w, h)
                 cells = [f"bikes 1→{k}, {radius:g} px", name, f"{w}×{h}"]
                 for config in (RegistrationConfig(), RegistrationConfig(defocus_px=radius),
-                               RegistrationConfig(gamma=GAMMA, defocus_px=radius)):
+                               RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=radius)):
                     result = register(sharp, current, roi=roi, config=config)
                     cells.append(f"{corner_error(H, result.H, roi):.2f}{'' if result.converged else '*'}")
                 lines.append("| " + " | ".join(cells) + " |")
@@ -63,6 +51,7 @@ def run() -> str:
 
 
 def main() -> int:
+    require_datasets()
     print(run())
     return 0
 

@@ -29,36 +29,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_registration import table_main  # noqa: E402
-from ddvs_service.datasets import datasets_dir  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.defocus import register_defocus  # noqa: E402
-from ddvs_service.registration.images import to_grey  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
+from evaluation.datasets import require_datasets  # noqa: E402
+from evaluation.pairs import CAMERA_GAMMA, PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 
-DATA = datasets_dir() / "oxford"
-PAIRS = [("boat", 2)] + [("bikes", k) for k in range(2, 7)] + [("leuven", k) for k in range(2, 7)]
-ROI_SIZES = ((200, 150), (400, 300))
 FAILED_PX = 5.0
-CAMERA_GAMMA = 2.2  # an sRGB-like response; the sequences' true responses are not published
-
-
-def load(seq: str, k: int) -> np.ndarray:
-    img = cv2.imread(str(DATA / seq / f"img{k}.png"), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise FileNotFoundError(f"missing dataset image {DATA / seq / f'img{k}.png'}")
-    return to_grey(img)
-
-
-def ground_truth(seq: str, k: int) -> np.ndarray:
-    H = np.loadtxt(DATA / seq / f"H1to{k}p")
-    return H / H[2, 2]
-
-
-def corner_error(H_true: np.ndarray, H_est: np.ndarray, roi: tuple[int, int, int, int]) -> float:
-    x, y, w, h = roi
-    c = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1, 1, 1, 1]], dtype=float)
-    a, b = H_true @ c, H_est @ c
-    return float(np.max(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)))
 
 
 def ecc(
@@ -91,7 +68,7 @@ def run() -> str:
         ref, cur, H_true = load(seq, 1), load(seq, k), ground_truth(seq, k)
         cells = [f"{seq} 1→{k}"]
         for w, h in ROI_SIZES:
-            roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
+            roi = centred_roi(ref.shape, w, h)
             result = register(ref, cur, roi=roi)
             error = corner_error(H_true, result.H, roi)
             worst = max(worst, error)
@@ -112,6 +89,7 @@ def run() -> str:
 
 
 def main() -> int:
+    require_datasets()
     return table_main(__doc__, run, "registration-real-pairs", "Registration on real pairs", "real_pairs.py")
 
 

@@ -5,7 +5,7 @@ Output keys: `H` (3×3, reference → current pixels, 0-based pixel centres, H[2
 (the registration itself, excluding image loading). Exit status 0 when converged, 1 when not, 2 on bad input.
 
 `--model general` registers the non-planar model (2) `p ∝ G p* + ρ*(p*) e` instead
-(`ddvs_service.registration.general.register_general`: ρ* estimated with several epipole starts); its extra keys:
+(`registration.general_register.register_general`: ρ* estimated with several epipole starts); its extra keys:
 `e` (epipole, pixels, same scale as `G`), `rho_coeffs`, `rho_degree`, `rho_std`, `parallax_px`, `margin`, `flags`.
 
 `--gamma G` registers irradiance `255 (I / 255)^G` (the camera's response; `RegistrationConfig.gamma`);
@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
             extra["defocus_px"] = fit.defocus_px
             extra["defocus_trials"] = [[r, s if math.isfinite(s) else None, c] for r, s, c in fit.trials]
         elif args.model == "general":
-            from ddvs_service.registration.general import GeneralConfig, register_general
+            from ddvs_service.registration.general import GeneralConfig
+            from ddvs_service.registration.general_register import register_general
 
             result = register_general(images[0], images[1], roi=roi, G0=G0,
                                       config=GeneralConfig(base=config, rho_degree=args.rho_degree,

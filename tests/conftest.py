@@ -17,3 +17,13 @@ def free_port() -> int:
 @pytest.fixture
 def port() -> int:
     return free_port()
+
+
+def pairs(cases: list[tuple[str, int]]) -> list[object]:
+    """`(seq, k)` real-pair cases for `pytest.mark.parametrize`: those not shipped (`evaluation/data`) and not in
+    the full datasets are skipped with the one line that says what they need."""
+    from evaluation.datasets import MISSING
+    from evaluation.pairs import is_available
+
+    return [pytest.param(seq, k, marks=() if is_available(seq, k) else pytest.mark.skip(reason=MISSING))
+            for seq, k in cases]

@@ -94,7 +94,7 @@ class TwoHosts:
         args = ["router", "--listen", listen] + (["--connect", connect] if connect else [])
         with open(self.log_dir / f"router-{host}.log", "w", encoding="utf-8") as log:
             self.routers[host] = subprocess.Popen(
-                [*self.wrapper(host), sys.executable, "-m", "ddvs_service.cli", *args], cwd=ROOT, stdout=log,
+                [*self.wrapper(host), sys.executable, "-m", "ddvs.cli", *args], cwd=ROOT, stdout=log,
                 stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         deadline = time.monotonic() + ROUTER_READY_S
         while "listening on" not in (self.log_dir / f"router-{host}.log").read_text(errors="replace"):

@@ -42,7 +42,7 @@ KEYS = Keys("ddvs", "armtest")
 @contextmanager
 def _process(*args: str) -> Iterator[subprocess.Popen]:
     """A `ddvs` subcommand in its own process, stopped with SIGINT (then killed) at the end."""
-    cmd = [sys.executable, "-m", "ddvs_service.cli", *args, "--prefix", KEYS.prefix, "--robot", KEYS.robot]
+    cmd = [sys.executable, "-m", "ddvs.cli", *args, "--prefix", KEYS.prefix, "--robot", KEYS.robot]
     proc = subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"},
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

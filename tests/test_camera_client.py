@@ -79,7 +79,7 @@ def test_video_file_is_published_rectified_at_the_requested_rate(tmp_path, encod
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         session.declare_subscriber(KEYS.camera_image, lambda s: images.append(s.payload.to_bytes()))
         session.declare_subscriber(KEYS.camera_info, lambda s: infos.append(s.payload.to_bytes()))
-        cmd = [sys.executable, "-m", "ddvs_service.cli", "camera", str(tmp_path / "clip.avi"), "--calibration",
+        cmd = [sys.executable, "-m", "ddvs.cli", "camera", str(tmp_path / "clip.avi"), "--calibration",
                str(tmp_path / "cal.yaml"), "--fps", "20", "--loop", "--frames", "40", "--encoding", encoding,
                "--robot", KEYS.robot, "--connect", f"tcp/127.0.0.1:{port}"]
         result = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)

@@ -58,7 +58,7 @@ def test_actions_map_to_commands(tmp_path):
 
 
 def _ctl(port: int, *argv: str, timeout: float = 5.0) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "ddvs_service.cli", "ctl", "--timeout", str(timeout), "--robot", "ctltest",
+    cmd = [sys.executable, "-m", "ddvs.cli", "ctl", "--timeout", str(timeout), "--robot", "ctltest",
            "--connect", f"tcp/127.0.0.1:{port}", *argv]
     return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
 
@@ -73,7 +73,7 @@ def test_no_service_exits_2():
 def test_exit_codes_against_a_running_service(tmp_path):
     port = free_port()
     serve = subprocess.Popen(
-        [sys.executable, "-m", "ddvs_service.cli", "serve", "--fresh", "--state-dir", str(tmp_path / "state"),
+        [sys.executable, "-m", "ddvs.cli", "serve", "--fresh", "--state-dir", str(tmp_path / "state"),
          "--robot", "ctltest", "--listen", f"tcp/127.0.0.1:{port}"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -39,9 +39,9 @@ import zenoh
 from netns import TwoHosts, create_two_hosts, netns_unavailable_reason
 
 from clients.analysis import summarize
-from clients.arm_run import SCENE, ArmRun, ArmRunResult, ArmRunSettings, ChildLaunch, open_arm_run
 from clients.recording import load_recording
 from ddvs_service.protocol import Command, Keys, decode_joint_state
+from orchestration.arm_run import SCENE, ArmRun, ArmRunResult, ArmRunSettings, ChildLaunch, open_arm_run
 
 pytestmark = pytest.mark.slow
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from clients.arm_run import ArmRunSettings, run_arm
-from clients.demo import write_report
+from orchestration.arm_run import ArmRunSettings, run_arm
+from orchestration.demo import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTS = ROOT / "reports" / "e2e_arm"

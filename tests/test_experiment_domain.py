@@ -1,4 +1,4 @@
-"""Convergence-domain sweep (`sim.experiment_domain`, `ddvs experiment domain`): the random starts have the
+"""Convergence-domain sweep (`orchestration.experiment_domain`, `ddvs experiment domain`): the random starts have the
 requested size and see the target, the table counts outcomes, a resumed sweep reuses only compatible trials, and a
 tiny real sweep (rendered frames, real estimators) writes its table, journal and plot."""
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ddvs_service.lie import pose_inv, so3_log
-from sim.experiment_domain import (
+from orchestration.experiment_domain import (
     CAMERA,
     OUTCOMES,
     UNIT_R_DEG,
@@ -83,7 +83,7 @@ def test_resume_refuses_other_physics(tmp_path):
 
 @pytest.mark.slow
 def test_tiny_sweep_through_the_cli_writes_table_journal_and_plot(tmp_path):
-    from ddvs_service.cli import main
+    from ddvs.cli import main
 
     args = ["experiment", "domain", "--target", "planar", "--law", "ddvs", "--trials", "2", "--sizes", "0.5", "3",
             "--max-images", "20", "--noise", "1", "--illumination", "--seed", "7", "--out", str(tmp_path)]

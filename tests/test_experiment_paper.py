@@ -1,5 +1,5 @@
-"""The paper end to end (`sim.experiment_paper`, `ddvs experiment paper`): the report's table carries the numbers
-of each run's summary, and a shortened real run (estimation from rendered frames on the free-flying camera; the
+"""The paper end to end (`orchestration.experiment_paper`, `ddvs experiment paper`): the report's table carries the
+numbers of each run's summary, and a shortened real run (estimation from rendered frames on the free-flying camera; the
 real service on the SAPIEN arm) writes summaries, figures and the report, then resumes without re-running."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.experiment_paper import PaperSettings, markdown_table, write_report
+from orchestration.experiment_paper import PaperSettings, markdown_table, write_report
 
 ROW = {
     "experiment": "arm_ddvs", "plant": "SAPIEN UR5, planar poster", "law": "ddvs", "geometry": "estimated",
@@ -37,7 +37,7 @@ def test_table_and_report_carry_the_numbers(tmp_path):
 
 @pytest.mark.slow
 def test_shortened_paper_run_writes_the_report_and_resumes(tmp_path: Path):
-    from ddvs_service.cli import main
+    from ddvs.cli import main
 
     chosen = ("synthetic_ddvs", "arm_dvs")
     args = ["experiment", "paper", "--out", str(tmp_path), "--max-images", "4", "--only", *chosen]

@@ -9,9 +9,9 @@ from dataclasses import replace
 
 import pytest
 
-from ddvs_service.cli import main
-from sim.experiment_cli import GEOMETRIES
-from sim.experiment_synthetic import GEOMETRY_SOURCES, SyntheticSetup, run_synthetic
+from ddvs.cli import main
+from orchestration.experiment_cli import GEOMETRIES
+from orchestration.experiment_synthetic import GEOMETRY_SOURCES, SyntheticSetup, run_synthetic
 
 
 @pytest.fixture(scope="module")

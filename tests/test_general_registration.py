@@ -13,10 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmarks.general_accuracy import measure
+from ddvs.cli import main
 from ddvs_service.camera import Intrinsics
-from ddvs_service.cli import main
-from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general import (
     FLAG_LOST,
@@ -24,20 +22,22 @@ from ddvs_service.registration.general import (
     FLAG_OCCLUSION,
     GeneralConfig,
     GeneralRegistration,
-    register_general,
     warp_points,
 )
 from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.general_register import register_general
 from ddvs_service.registration.general_tracker import GeneralTracker
-from sim.experiment_synthetic import SyntheticSetup, run_synthetic
+from evaluation.general_accuracy import measure
+from orchestration.experiment_synthetic import SyntheticSetup, run_synthetic
 from sim.freeflyer import render_camera, render_view
 from sim.ground_truth import ground_truth, parallax_map
 from sim.surfaces import Plane, paper_saddle
+from sim.textures import texture_path
 
 INTR = Intrinsics.centred(500.0, 550, 418)
 ROI = (175, 134, 200, 150)  # 200×150, centred on the principal point (the control point)
 CONTROL_POINT = (INTR.cx, INTR.cy)
-PHOTO = str(dataset_image("oxford/graf/img1.png"))
+PHOTO = str(texture_path("graf"))
 
 
 @cache

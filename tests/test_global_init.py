@@ -13,15 +13,10 @@ from ddvs_service.registration.global_fourier_mellin import (
     similarity,
 )
 from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, reacquire
-from ddvs_service.registration.global_scenes import (
-    TEXTURES,
-    Displacement,
-    PlanarScene,
-    load_texture,
-    roi_grid,
-    warp_rms,
-)
+from ddvs_service.registration.warp_distance import roi_grid, warp_rms
 from kernels import backend
+from sim.planar_scene import POSTER_BLUR_SIGMA, Displacement, PlanarScene
+from sim.textures import TEXTURES, load_texture
 
 CAM = Intrinsics.centred(420.0, 320, 240)
 ROI = (125, 85, 70, 70)  # 70×70 template centred on the control point (image centre)
@@ -30,7 +25,7 @@ CENTRE = (159.5, 119.5)
 
 @pytest.fixture(scope="module")
 def scene() -> PlanarScene:
-    return PlanarScene(CAM, load_texture(TEXTURES[1]))
+    return PlanarScene(CAM, load_texture(TEXTURES[1], POSTER_BLUR_SIGMA))
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +65,7 @@ def test_upside_down_scaled_and_shifted(scene: PlanarScene, initializer: GlobalI
 
 
 def test_unrelated_image_is_lost(scene: PlanarScene, initializer: GlobalInitializer) -> None:
-    other = PlanarScene(CAM, load_texture(TEXTURES[2]))
+    other = PlanarScene(CAM, load_texture(TEXTURES[2], POSTER_BLUR_SIGMA))
     result = initializer.initialize(scene.render(), ROI, other.render())
     assert result.status == "LOST"
     assert result.G is None
@@ -107,8 +102,8 @@ def test_paper_saddle_initial_image_general_model_below_01_px() -> None:
     """The paper's synthetic initial image (saddle, f = 500 px, 550×418, 200×150 ROI on the control point; current
     camera at t = [0.17, −0.11, 0.01] m, r = [−0.1, −0.31, 1.04] rad in the reference frame): the global initialiser
     (planar) then the general model of eq. (2) recover the true warp `G p* + ρ*(p*) e` to < 0.1 px RMS."""
-    from ddvs_service.registration.general import register_general
-    from sim.experiment_synthetic import SyntheticSetup
+    from ddvs_service.registration.general_register import register_general
+    from orchestration.experiment_synthetic import SyntheticSetup
     from sim.freeflyer import render_view
     from sim.ground_truth import ground_truth, parallax_map
     from sim.surfaces import paper_saddle
@@ -173,7 +168,7 @@ def test_register_cli_init_global(scene: PlanarScene, tmp_path, capsys) -> None:
     H = scene.homography(so3_exp(np.radians([5.0, -5.0, 120.0])), np.array([0.03, -0.02, 0.05]))
     files = {}
     for name, image in (("ref", scene.render()), ("cur", scene.render(H)),
-                        ("other", PlanarScene(CAM, load_texture(TEXTURES[2])).render())):
+                        ("other", PlanarScene(CAM, load_texture(TEXTURES[2], POSTER_BLUR_SIGMA)).render())):
         files[name] = str(tmp_path / f"{name}.png")
         cv2.imwrite(files[name], np.clip(np.round(image), 0, 255).astype(np.uint8))
     parser = argparse.ArgumentParser()

@@ -7,19 +7,16 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from conftest import pairs
 
-from benchmarks.irradiance_blur import GAMMA, defocused
-from benchmarks.real_pairs import corner_error, ground_truth, load
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.defocus import DEFAULT_RADII, register_defocus
 from ddvs_service.registration.images import irradiance
 from ddvs_service.registration.planar import register
+from evaluation.defocus import defocused
+from evaluation.pairs import CAMERA_GAMMA, centred_roi, corner_error, ground_truth, load
 from kernels.backend import init
 from kernels.image_formation import defocus_kernel, disk_blur, linearise
-
-
-def centred_roi(shape: tuple[int, ...], w: int, h: int) -> tuple[int, int, int, int]:
-    return (shape[1] - w) // 2, (shape[0] - h) // 2, w, h
 
 
 @pytest.mark.parametrize("radius", [0.0, 0.4, 1.0, 2.5, 5.5])
@@ -54,8 +51,8 @@ def test_linearise_matches_numpy():
     init()
     img = np.linspace(-5.0, 300.0, 64 * 48, dtype=np.float32).reshape(48, 64)
     out = img.copy()
-    linearise(out, GAMMA)
-    expected = 255.0 * (np.maximum(img.astype(np.float64), 0.0) / 255.0) ** GAMMA
+    linearise(out, CAMERA_GAMMA)
+    expected = 255.0 * (np.maximum(img.astype(np.float64), 0.0) / 255.0) ** CAMERA_GAMMA
     assert np.allclose(out, expected, rtol=1e-5, atol=1e-4)
     assert irradiance(img, 1.0) is img  # nothing to do: no copy
 
@@ -75,7 +72,7 @@ def synthetic_pair():
     H = np.eye(3)
     H[:2, :2] = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     H[:2, 2] = np.array([cx + 25.0, cy - 12.0]) - H[:2, :2] @ np.array([cx, cy])
-    return sharp, defocused(sharp, H, 5.0, GAMMA), H, roi  # what a γ-encoding camera records through the lens
+    return sharp, defocused(sharp, H, 5.0, CAMERA_GAMMA), H, roi  # what a γ-encoding camera records through the lens
 
 
 def test_defocus_in_irradiance_biases_encoded_levels(synthetic_pair):
@@ -90,10 +87,10 @@ def test_defocus_in_irradiance_biases_encoded_levels(synthetic_pair):
 
 def test_gamma_and_defocus_recover_the_warp(synthetic_pair):
     sharp, current, H, roi = synthetic_pair
-    fixed = register(sharp, current, roi=roi, config=RegistrationConfig(gamma=GAMMA, defocus_px=5.0))
+    fixed = register(sharp, current, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=5.0))
     assert fixed.converged, fixed.reason
     assert corner_error(H, fixed.H, roi) < 0.1
-    fit = register_defocus(sharp, current, roi=roi, config=RegistrationConfig(gamma=GAMMA))
+    fit = register_defocus(sharp, current, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA))
     assert fit.result.converged, fit.result.reason
     assert fit.defocus_px == pytest.approx(5.0, abs=0.5)
     assert corner_error(H, fit.result.H, roi) < 0.1
@@ -108,19 +105,19 @@ def test_register_defocus_refuses_bad_radii(synthetic_pair):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("k", [4, 5, 6])
+@pytest.mark.parametrize("seq, k", pairs([("bikes", 4), ("bikes", 5), ("bikes", 6)]))
 @pytest.mark.parametrize("size", [(200, 150), (400, 300)])
-def test_blurred_bikes_within_a_pixel(k, size):
+def test_blurred_bikes_within_a_pixel(seq, k, size):
     """Bikes 1→4…6 (defocus disks of ~3.5–5.5 px) with the camera's response (γ 2.2) and the defocus estimated:
     within 1 px of the ground truth, except bikes 1→6 at 400×300, where the ground truth itself is 1.37 px from
     two independent SIFT fits (`benchmarks/bikes_ground_truth.py`) and is held to 2 px."""
-    ref, cur = load("bikes", 1), load("bikes", k)
+    ref, cur = load(seq, 1), load(seq, k)
     roi = centred_roi(ref.shape, *size)
-    fit = register_defocus(ref, cur, roi=roi, config=RegistrationConfig(gamma=GAMMA))
+    fit = register_defocus(ref, cur, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA))
     assert fit.result.converged, fit.result.reason
     assert 2.5 <= fit.defocus_px <= 6.5
     bound = 2.0 if (k, size) == (6, (400, 300)) else 1.0
-    assert corner_error(ground_truth("bikes", k), fit.result.H, roi) <= bound
+    assert corner_error(ground_truth(seq, k), fit.result.H, roi) <= bound
 
 
 def test_register_cli_gamma_and_defocus_search(synthetic_pair, tmp_path, capsys):
@@ -138,7 +135,7 @@ def test_register_cli_gamma_and_defocus_search(synthetic_pair, tmp_path, capsys)
         cv2.imwrite(files[-1], np.clip(np.round(image), 0, 255).astype(np.uint8))
     parser = argparse.ArgumentParser()
     register_cli.add_arguments(parser)
-    common = [*files, "--roi", *(str(v) for v in roi), "--gamma", str(GAMMA)]
+    common = [*files, "--roi", *(str(v) for v in roi), "--gamma", str(CAMERA_GAMMA)]
     assert register_cli.run(parser.parse_args([*common, "--defocus", "search"])) == 0
     out = json.loads(capsys.readouterr().out.splitlines()[-1])  # the last line (Taichi may print a banner first)
     assert out["converged"] and out["defocus_px"] == pytest.approx(5.0, abs=0.5)
@@ -156,12 +153,12 @@ def test_tracker_follows_a_defocused_stream_in_irradiance():
 
     sharp = load("bikes", 1)
     roi = centred_roi(sharp.shape, 200, 150)
-    tracker = Tracker(sharp, roi, RegistrationConfig(gamma=GAMMA, defocus_px=4.0))
+    tracker = Tracker(sharp, roi, RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=4.0))
     H = np.eye(3)
     tracker.reset(H)
     for step in range(4):
         H = np.array([[1.0, 0.0, 2.0 * (step + 1)], [0.0, 1.0, -1.0 * (step + 1)], [0.0, 0.0, 1.0]])
-        result = tracker.track(defocused(sharp, H, 4.0, GAMMA))
+        result = tracker.track(defocused(sharp, H, 4.0, CAMERA_GAMMA))
         assert result.converged, result.reason
         assert corner_error(H, result.H, roi) < 0.1
 
@@ -169,7 +166,7 @@ def test_tracker_follows_a_defocused_stream_in_irradiance():
 def test_register_defocus_on_a_textureless_pair_reports_not_converged():
     """No radius can converge on a flat image: the fit at the smallest radius comes back flagged, no exception."""
     flat = np.full((120, 160), 90.0, dtype=np.float32)
-    fit = register_defocus(flat, flat, roi=(40, 30, 80, 60), config=RegistrationConfig(gamma=GAMMA))
+    fit = register_defocus(flat, flat, roi=(40, 30, 80, 60), config=RegistrationConfig(gamma=CAMERA_GAMMA))
     assert not fit.result.converged and "degenerate" in fit.result.reason
     assert fit.defocus_px == 0.0 and np.all(np.isfinite(fit.result.G))
     assert len(fit.trials) == len(DEFAULT_RADII) and not any(converged for _, _, converged in fit.trials)
@@ -178,14 +175,15 @@ def test_register_defocus_on_a_textureless_pair_reports_not_converged():
 def test_general_model_honours_gamma_and_defocus():
     """The general model (eq. (2)) runs on the planar engine's reference and current buffers, so it registers
     irradiance with the reference defocused too: a planar scene defocused by 4 px in irradiance, 7 px away."""
-    from ddvs_service.registration.general import GeneralConfig, register_general
+    from ddvs_service.registration.general import GeneralConfig
+    from ddvs_service.registration.general_register import register_general
 
     sharp = load("bikes", 1)
     roi = centred_roi(sharp.shape, 200, 150)
     H = np.array([[1.0, 0.0, 6.0], [0.0, 1.0, -4.0], [0.0, 0.0, 1.0]])
-    current = defocused(sharp, H, 4.0, GAMMA)
+    current = defocused(sharp, H, 4.0, CAMERA_GAMMA)
     result = register_general(sharp, current, roi=roi,
-                              config=GeneralConfig(base=RegistrationConfig(gamma=GAMMA, defocus_px=4.0)))
+                              config=GeneralConfig(base=RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=4.0)))
     assert result.converged, result.reason
     assert corner_error(H, result.G / result.G[2, 2], roi) < 0.05
     assert np.all(np.abs(result.warp(np.array([[450.0, 300.0]])) - [456.0, 296.0]) < 0.05)

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
-from ddvs_service.datasets import dataset_image
+from evaluation.numpy_iteration import bilinear, numpy_step
 from kernels.backend import init
 from kernels.planar_step import (
     N_STATS,
@@ -29,14 +26,10 @@ from kernels.planar_step import (
     work_size,
 )
 from kernels.pyramid import downsample2
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.numpy_iteration import bilinear, numpy_step
+from sim.textures import load_texture
 
 init()
-IMG = cv2.GaussianBlur(
-    cv2.imread(str(dataset_image("oxford/boat/img1.png")), cv2.IMREAD_GRAYSCALE).astype(np.float32), (0, 0), 1.0
-)
+IMG = cv2.GaussianBlur(load_texture("boat"), (0, 0), 1.0)
 G_TEST = np.array([[1.01, 0.02, 3.3], [-0.015, 0.99, -2.7], [1e-5, -2e-5, 1.0]])
 
 

@@ -82,7 +82,7 @@ def test_snapshot_has_the_newest_status_and_the_arrival_rates():
 
 
 def _once(port: int, timeout: float) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "ddvs_service.cli", "monitor", "--once", "--window", "0.5", "--timeout", str(timeout),
+    cmd = [sys.executable, "-m", "ddvs.cli", "monitor", "--once", "--window", "0.5", "--timeout", str(timeout),
            "--robot", KEYS.robot, "--connect", f"tcp/127.0.0.1:{port}"]
     return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
 

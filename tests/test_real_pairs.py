@@ -6,37 +6,36 @@ asserted to reach the optimum of eq. (5) that a start at the ground truth reache
 from __future__ import annotations
 
 import pytest
+from conftest import pairs
 
-from benchmarks.real_pairs import ROI_SIZES, corner_error, ground_truth, load
 from ddvs_service.registration.planar import register
+from evaluation.pairs import ROI_SIZES, centred_roi, corner_error, ground_truth, load
 
 MET = [("boat", 2), ("bikes", 2), ("bikes", 3)] + [("leuven", k) for k in range(2, 7)]
 SLACK_PX = 0.05  # leuven 1→6 ends at 1.00 px
 
 
-@pytest.mark.parametrize("seq, k", [*MET, ("bikes", 4)])
+@pytest.mark.parametrize("seq, k", pairs([*MET, ("bikes", 4)]))
 @pytest.mark.parametrize("size", ROI_SIZES)
 def test_corner_error_from_identity(seq, k, size):
     """Bikes 1→4 at 200×150 (a 43 px shift under strong blur) diverged from identity before the cold start's
     translation search (324 px); it ends at 1.05 px, hence its bound of 1.1 px."""
     ref, cur = load(seq, 1), load(seq, k)
-    w, h = size
-    roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
+    roi = centred_roi(ref.shape, *size)
     result = register(ref, cur, roi=roi)
     assert result.converged, result.reason
     bound = 1.1 if (seq, k) == ("bikes", 4) else 1.0 + SLACK_PX
     assert corner_error(ground_truth(seq, k), result.H, roi) <= bound
 
 
-@pytest.mark.parametrize("k", [5, 6])
+@pytest.mark.parametrize("seq, k", pairs([("bikes", 5), ("bikes", 6)]))
 @pytest.mark.parametrize("size", ROI_SIZES)
-def test_blurred_bikes_cold_start_reaches_the_optimum(k, size):
+def test_blurred_bikes_cold_start_reaches_the_optimum(seq, k, size):
     """On bikes 1→5, 1→6 the optimum of eq. (5) itself lies 1.2–2.5 px from the ground truth (ECC started at the
     ground truth ends as far, `benchmarks/cost_optimum.py`): the cold start from identity — a 43 px shift under a
     ~5 px defocus disk — must still find that optimum, not another one."""
-    ref, cur, truth = load("bikes", 1), load("bikes", k), ground_truth("bikes", k)
-    w, h = size
-    roi = ((ref.shape[1] - w) // 2, (ref.shape[0] - h) // 2, w, h)
+    ref, cur, truth = load(seq, 1), load(seq, k), ground_truth(seq, k)
+    roi = centred_roi(ref.shape, *size)
     cold = register(ref, cur, roi=roi)
     warm = register(ref, cur, roi=roi, G0=truth)
     assert corner_error(cold.H, warm.H, roi) <= 0.05

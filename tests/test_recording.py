@@ -73,7 +73,7 @@ def test_killed_recorder_leaves_every_complete_record_readable(tmp_path):
     port = free_port()
     keys = Keys("ddvs", "rectest")
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "ddvs_service.cli", "record", str(out), "--robot", keys.robot,
+    cmd = [sys.executable, "-m", "ddvs.cli", "record", str(out), "--robot", keys.robot,
            "--listen", f"tcp/127.0.0.1:{port}", "--meta", "stop_threshold=0.001"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     sent = []

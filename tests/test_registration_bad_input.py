@@ -6,13 +6,13 @@ import cv2
 import numpy as np
 import pytest
 
-from ddvs_service.datasets import dataset_image
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.planar import register
 from ddvs_service.registration.tracker import Tracker
+from sim.textures import load_texture
 
 IMG = cv2.GaussianBlur(
-    cv2.imread(str(dataset_image("oxford/boat/img1.png")), cv2.IMREAD_GRAYSCALE).astype(np.float32), (0, 0), 1.5
+    load_texture("boat"), (0, 0), 1.5
 )
 ROI = (325, 265, 200, 150)
 

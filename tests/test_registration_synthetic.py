@@ -6,19 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from ddvs_service.datasets import datasets_dir
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.planar import register, remaining_motion
 from ddvs_service.registration.tracker import Tracker
+from evaluation.pairs import load
 
-DATA = datasets_dir() / "oxford"
 ROI = (325, 265, 200, 150)  # central 200×150 of the 850×680 boat image
-
-
-def load(seq: str, k: int) -> np.ndarray:
-    img = cv2.imread(str(DATA / seq / f"img{k}.png"), cv2.IMREAD_GRAYSCALE)
-    assert img is not None, f"missing dataset image {seq}/img{k}.png"
-    return img.astype(np.float32)
 
 
 @pytest.fixture(scope="module")

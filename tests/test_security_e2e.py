@@ -17,7 +17,6 @@ import zenoh
 from conftest import free_port
 from test_security import SCRIPT, Inbox, _zenoh_config
 
-from clients.arm_run import BRIDGE, SCENE, ArmRunSettings, child, render_reference, service_config
 from ddvs_service.lie import so3_log
 from ddvs_service.protocol import (
     Command,
@@ -42,6 +41,7 @@ from ddvs_service.protocol.security import (
     router_config,
 )
 from ddvs_service.protocol.upload import encode_upload
+from orchestration.arm_run import BRIDGE, SCENE, ArmRunSettings, child, render_reference, service_config
 
 KEYS = Keys("ddvs", "secure_e2e")
 TIME_LIMIT_S = 240.0

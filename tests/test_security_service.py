@@ -82,7 +82,7 @@ def test_ddvs_serve_over_mtls_obeys_the_operator_only(certs: Path, tmp_path: Pat
         "registration": {"template_size": [100, 80]},
     }))
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
-    proc = subprocess.Popen([sys.executable, "-m", "ddvs_service.cli", "serve", "--config", str(serve_file)],
+    proc = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(serve_file)],
                             stderr=subprocess.PIPE, text=True, env=env)
     try:
         operator, observer, plant = (
@@ -142,7 +142,7 @@ def test_only_the_bridge_moves_the_real_arm_sim_over_mtls(certs: Path, tmp_path:
                                        "ddvs sim arm as the plant role"))
     scene = Path(__file__).resolve().parents[1] / "configs" / "arm" / "ur5_poster.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "ddvs_service.cli", "sim", "arm", "--config", str(scene), "--clock", "realtime",
+        [sys.executable, "-m", "ddvs.cli", "sim", "arm", "--config", str(scene), "--clock", "realtime",
          "--fps", "30", "--deadman", "0.1", "--start", "reference", "--mode", "client", "--connect", endpoint,
          "--zenoh-config", str(plant_file), "--prefix", KEYS.prefix, "--robot", KEYS.robot],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -24,7 +24,6 @@ import pytest
 import zenoh
 from conftest import free_port
 
-from ddvs_service.datasets import dataset_image
 from ddvs_service.protocol import (
     Command,
     Keys,
@@ -39,9 +38,10 @@ from ddvs_service.protocol import (
 from ddvs_service.protocol.ros import Header, Time
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.inbox import Inbox
+from sim.textures import texture_path
 
 W, H, F = 320, 240, 420.0
-BOAT = dataset_image("oxford/boat/img1.png")
+BOAT = texture_path("boat")
 
 
 def scene() -> np.ndarray:
@@ -125,7 +125,7 @@ class Service:
         cfg_file = tmp_path / "serve.json"
         cfg_file.write_text(config.model_dump_json())
         env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
-        self.proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "ddvs_service.cli", "serve",
+        self.proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "ddvs.cli", "serve",
                                       "--config", str(cfg_file)], stderr=subprocess.PIPE, text=True, env=env)
 
     def wait_ready(self, op: Operator, timeout: float = 60.0) -> None:

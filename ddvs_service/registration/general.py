@@ -31,7 +31,7 @@ Update at pyramid level l (level pixels, `D_l` of `images`): `G_l ← M G_l`, `e
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from ddvs_service.lie import sl3_exp
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.general_basis import ParallaxBasis
-from ddvs_service.registration.images import F32, checked_grey
+from ddvs_service.registration.images import F32
 from ddvs_service.registration.planar import (
     DEGENERATE_RCOND,
     MAD_TO_SIGMA,
@@ -569,54 +569,3 @@ def _flags_for(reason: str) -> list[str]:
     if "diverged" in reason or "non-finite" in reason:
         return [FLAG_DIVERGED]
     return []
-
-
-def register_general(
-    reference: ArrayLike,
-    current: ArrayLike,
-    roi: Roi | None = None,
-    G0: ArrayLike | None = None,
-    e0: ArrayLike | None = None,
-    rho0: ArrayLike | None = None,
-    config: GeneralConfig = GeneralConfig(),
-    mask: ArrayLike | None = None,
-) -> GeneralResult:
-    """One-shot general registration of `current` against `reference` over `roi = (x, y, w, h)` (reference pixels).
-
-    Without `rho0` ρ* is estimated (several epipole starts, module docstring); `G0` is the starting homography
-    (the global initialiser's when None). With `rho0` (coefficients of `ParallaxBasis`, this config's degree) ρ* is
-    held fixed and only `G`, `e` (from `e0`, default 0), `S`, `β` are estimated from `G0` (required then).
-    Raises ValueError on bad input; a failed registration is reported in the result (`converged`, `reason`, `flags`).
-    """
-    problem = GeneralRegistration(reference, roi=roi, mask=mask, config=config)
-    cur = checked_grey(current, "current")
-    if cur.shape != problem.planar.shape:
-        raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
-                         f"{problem.planar.shape[1]}×{problem.planar.shape[0]}")
-    start = None if G0 is None else np.asarray(G0, dtype=np.float64).reshape(3, 3)
-    if rho0 is None:
-        if start is None:
-            start = global_start(problem, cur)
-            if start is None:
-                return problem._failed(_State(np.eye(3), np.zeros(3), np.zeros(problem.basis.size),
-                                              np.ones(problem.grid), 0.0, None),
-                                       "global initialisation found no confident estimate (LOST)", [FLAG_LOST])
-        return problem.estimate(cur, start)
-    rho = np.asarray(rho0, dtype=np.float64).reshape(-1)
-    if rho.size != problem.basis.size:
-        raise ValueError(f"rho0 has {rho.size} coefficients, expected {problem.basis.size} "
-                         f"(degree {config.rho_degree})")
-    if start is None:
-        raise ValueError("G0 is required with rho0 (tracking from a known parallax field)")
-    e = np.zeros(3) if e0 is None else np.asarray(e0, dtype=np.float64).reshape(3)
-    return problem.track(cur, start, e, rho)
-
-
-def global_start(problem: GeneralRegistration, current: F32) -> F64 | None:
-    """`G` from the global initialiser (planar refinement), None when it reports LOST."""
-    from ddvs_service.registration.global_init import GlobalInitializer, PlanarRefiner
-
-    ref = problem.reference[0]
-    init = GlobalInitializer(refiner_factory=lambda r, roi: PlanarRefiner(r, roi, config=replace(problem.config.base)))
-    found = init.initialize(ref, problem.roi, current)
-    return found.G

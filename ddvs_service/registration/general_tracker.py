@@ -28,9 +28,9 @@ from ddvs_service.registration.general import (
     GeneralConfig,
     GeneralRegistration,
     GeneralResult,
-    global_start,
 )
 from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.general_register import global_start
 from ddvs_service.registration.images import checked_grey
 from ddvs_service.registration.planar import Roi
 

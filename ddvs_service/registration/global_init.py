@@ -42,6 +42,7 @@ from typing import Any, Literal, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from ddvs_service.registration.general import GeneralConfig, GeneralRegistration
 from ddvs_service.registration.global_cost import PhotometricScore, photometric_score, sample_at, sample_through
 from ddvs_service.registration.global_features import feature_homography
 from ddvs_service.registration.global_fourier_mellin import (
@@ -54,8 +55,8 @@ from ddvs_service.registration.global_fourier_mellin import (
     rotation_scale_stages,
     translation_hypotheses,
 )
-from ddvs_service.registration.global_scenes import rms_distance, roi_grid, roi_samples, warp_rms
 from ddvs_service.registration.global_screen import BatchScreen
+from ddvs_service.registration.warp_distance import rms_distance, roi_grid, roi_samples, warp_rms
 from kernels import backend
 
 F32 = NDArray[np.float32]
@@ -125,8 +126,6 @@ class GeneralRefiner:
         self._problem: Any = None
 
     def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]:
-        from ddvs_service.registration.general import GeneralConfig, GeneralRegistration
-
         if self._problem is None:
             self._problem = GeneralRegistration(self.reference, roi=self.roi, config=self.config or GeneralConfig())
         result = self._problem.estimate(current, G0)
@@ -224,7 +223,7 @@ class ReferenceSide:
     """Everything an initialisation derives from the reference image and the ROI alone, kept across calls with the
     same reference (a tracker re-initialises against it after LOST): the search level's reference pyramid, template
     and log-polar spectrum (`search`), the screening's geometry (`screen`), the full-resolution `refine`r and
-    `template`, and the points over which warp distances are measured (`points`, `global_scenes.roi_samples`)."""
+    `template`, and the points over which warp distances are measured (`points`, `warp_distance.roi_samples`)."""
 
     reference: F32  # a private copy: a later call is served from this side only if its reference is equal
     roi: Roi

@@ -18,18 +18,19 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "register": ("ddvs_service.register_cli", "planar direct registration of two images (prints one JSON line)"),
     "sim": ("sim.sim_cli", "run a simulated plant over Zenoh (`ddvs sim arm`: the SAPIEN arm)"),
     "bridge": ("clients.bridge_cli", "camera twist → arm joint velocities (Pinocchio, any URDF + camera mount)"),
-    "experiment": ("sim.experiment_cli", "run the paper's experiments on the simulated plant (synthetic)"),
+    "experiment": ("orchestration.experiment_cli", "run the paper's experiments on the simulated plant (synthetic)"),
     "camera": ("clients.camera", "publish frames + camera info from a webcam or a video file"),
     "ctl": ("clients.ctl", "send one command to the servo service (reference, start/stop, config) and print the reply"),
     "monitor": ("clients.monitor", "live terminal view of a servo: state, error, rates, latencies (--once: JSON)"),
     "record": ("clients.record", "record a servo run (status, twists, joints, ground truth, frames) to a directory"),
     "plot": ("clients.plot", "plot a recording: velocities, error norm, 3-D camera trajectory, pose error"),
     "router": ("ddvs_service.router_cli", "a Zenoh router in Python (one per host; the host's nodes are its clients)"),
-    "demo": ("clients.demo", "the paper's real-data experiment on the simulated UR5, real time, with a report"),
+    "demo": ("orchestration.demo", "the paper's real-data experiment on the simulated UR5, real time, with a report"),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `ddvs` parser; only `command`'s module is imported, to add its arguments (the others: their help line)."""
     parser = argparse.ArgumentParser(
         prog="ddvs", description="Decoupled Direct Visual Servoing: tools, plants and the servo service."
     )
@@ -37,13 +38,20 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module_name, help_text) in SUBCOMMANDS.items():
         sp = sub.add_parser(name, help=help_text, description=help_text)
         sp.set_defaults(_module=module_name)
-        importlib.import_module(module_name).add_arguments(sp)
+        if name == command:
+            importlib.import_module(module_name).add_arguments(sp)
     return parser
 
 
+def requested_command(argv: Sequence[str]) -> str | None:
+    """The subcommand named in `argv` (the first word that is not an option), or None."""
+    return next((word for word in argv if not word.startswith("-")), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(requested_command(words))
+    args = parser.parse_args(words)
     if getattr(args, "_module", None) is None:
         parser.print_help()
         return 0

@@ -46,9 +46,10 @@ from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from ddvs_service.service.config import ControlSettings, RegistrationSettings
 from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
-from sim.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE, load_texture
+from orchestration.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
 from sim.freeflyer import Appearance, FreeFlyer, render_view
 from sim.surfaces import Plane, Surface, paper_saddle
+from sim.textures import load_texture
 
 F64 = NDArray[np.float64]
 

@@ -2,11 +2,11 @@
 `v = λ ε'`, the service's `dvs_reduced`) and the decoupled DVS ((16), `c*' = m*'`, `v = Λ ε̄`), λ = 0.4, stop at an
 error norm below 1e-3, the geometry estimated from rendered images only (no ground truth in the loop):
 
-- "synthetic_<law>": section IV-A on the free-flying camera (`sim.experiment_synthetic.run_synthetic`): horse
+- "synthetic_<law>": section IV-A on the free-flying camera (`orchestration.experiment_synthetic.run_synthetic`): horse
   saddle 1 m ahead, f = 500 px, 550×418, 200×150 ROI, 30 ms sampling, t = [0.17, −0.11, 0.01] m,
   r = [−0.1, −0.31, 1.04] rad. Geometry source: "estimated" (general tracker of eq. (2)) when
   `GEOMETRY_SOURCES` offers it, else "exact" (ground truth; the report's geometry column then says so).
-- "arm_<law>": section IV-B on the simulated UR5 through the real service (`clients.arm_run.run_arm`: sim,
+- "arm_<law>": section IV-B on the simulated UR5 through the real service (`orchestration.arm_run.run_arm`: sim,
   service and bridge as separate processes over Zenoh, lockstep clock): planar poster 0.7 m ahead, f = 420 px,
   320×240, 70×70 template on the control point, t = [0.13, −0.23, −0.08] m, r = [−20.3, 2.17, 14.59]°.
 
@@ -15,7 +15,7 @@ Measures, from the ground truth (evaluation only), the same for both plants:
   while SERVOING before the first CONVERGED status), the first image below the threshold (`first_below`), final
   translation (mm) and rotation (deg) error;
 - retreat (mm): largest increase of the camera centre's distance to the target centre over its initial value;
-- coupling: the share of the translational command driven by the rotational error (`sim.experiment_synthetic`
+- coupling: the share of the translational command driven by the rotational error (`orchestration.experiment_synthetic`
   defines it; for the arm it is computed from the recorded control errors `Λ ε` and ground-truth rotations),
   over the whole run and where the remaining rotation is below 5°.
 
@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose_inv, so3_log
-from sim.experiment_synthetic import (
+from orchestration.experiment_synthetic import (
     GEOMETRY_SOURCES,
     LAW_NAMES,
     PAPER_IMAGES,
@@ -140,9 +140,9 @@ def save_error_plot(norms: F64, translation_m: F64, rotation_deg: F64, threshold
 def run_arm_experiment(law: str, out: Path, settings: PaperSettings) -> dict[str, Any]:
     """Section IV-B with `law` ("dvs" | "ddvs") through the real service; recording and figures into `out`."""
     from clients.analysis import status_series, summarize
-    from clients.arm_run import ArmRunSettings, run_arm
     from clients.plot import plot_recording
     from clients.recording import load_recording
+    from orchestration.arm_run import ArmRunSettings, run_arm
     from sim.arm_scene import load_scene_config
 
     shutil.rmtree(out, ignore_errors=True)  # a recording directory must start empty
@@ -254,7 +254,8 @@ def write_report(rows: dict[str, dict[str, Any]], out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "paper.json").write_text(json.dumps(rows, indent=2))
     lines = ["# The paper's experiments, reproduced", "",
-             "Produced by `ddvs experiment paper` (`sim/experiment_paper.py`); see docs/results.md for the discussion.",
+             "Produced by `ddvs experiment paper` (`orchestration/experiment_paper.py`); see docs/results.md for the "
+             "discussion.",
              "", markdown_table(rows), "## How each run ended", ""]
     lines += [f"- {name}: {row['stopped']}" for name, row in rows.items()]
     lines += ["", "## Figures", ""]

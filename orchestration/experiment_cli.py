@@ -1,6 +1,6 @@
-"""`ddvs experiment synthetic`: the paper's synthetic experiment (see `sim.experiment_synthetic`); `ddvs experiment
-paper` (both experiments and the report, `sim.experiment_paper`) and `ddvs experiment domain` (convergence domain,
-`sim.experiment_domain`).
+"""`ddvs experiment synthetic`: the paper's synthetic experiment (see `orchestration.experiment_synthetic`);
+`ddvs experiment paper` (both experiments and the report, `orchestration.experiment_paper`) and `ddvs experiment
+domain` (convergence domain, `orchestration.experiment_domain`).
 
 Prints a human-readable summary, or one JSON line with `--json` (law, geometry source, converged, why it stopped,
 images to convergence, the paper's count, final translation (m) and rotation (deg) errors, retreat (m), coupling
@@ -59,14 +59,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.experiment == "paper":
-        from sim.experiment_paper import run_paper_command
+        from orchestration.experiment_paper import run_paper_command
 
         return run_paper_command(args)
     if args.experiment == "domain":
-        from sim.experiment_domain import run_domain_command
+        from orchestration.experiment_domain import run_domain_command
 
         return run_domain_command(args)
-    from sim.experiment_synthetic import PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
+    from orchestration.experiment_synthetic import PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
 
     setup = SyntheticSetup(
         t=tuple(args.t) if args.t else PAPER_T,

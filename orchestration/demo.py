@@ -1,6 +1,6 @@
 """`ddvs demo` (`make demo`): the paper's real-data experiment on the simulated UR5, end to end, in real time.
 
-Runs `clients.arm_run.run_arm` (sim, bridge and service as separate processes over Zenoh on loopback) with the
+Runs `orchestration.arm_run.run_arm` (sim, bridge and service as separate processes over Zenoh on loopback) with the
 decoupled law (16)/(25) and the sim's real-time clock (30 Hz) by default, prints one progress line per second
 (state, error norm, images since start), and writes to `--out` (default `reports/demo/`): the recording, the
 figures of `ddvs plot`, `summary.json` and `summary.md` (images to convergence beside the paper's 417 / 309, final
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     import shutil
     import signal
 
-    from clients.arm_run import ArmRunSettings, run_arm
+    from orchestration.arm_run import ArmRunSettings, run_arm
 
     def on_sigterm(*_: object) -> None:
         raise KeyboardInterrupt

@@ -125,11 +125,11 @@ def render_reference(scene_path: Path) -> tuple[Any, Any]:
 @contextmanager
 def child(name: str, args: list[str], log_dir: Path, wrapper: tuple[str, ...] = (),
           append: bool = False) -> Iterator[subprocess.Popen]:
-    """`[wrapper…] python -m ddvs_service.cli ARGS` in its own process (output to `<log_dir>/<name>.log`, appended
+    """`[wrapper…] python -m ddvs.cli ARGS` in its own process (output to `<log_dir>/<name>.log`, appended
     when `append`), stopped at exit: SIGINT, then SIGKILL after `STOP_GRACE_S` seconds."""
     log_dir.mkdir(parents=True, exist_ok=True)
     with open(log_dir / f"{name}.log", "a" if append else "w", encoding="utf-8") as log:
-        proc = subprocess.Popen([*wrapper, sys.executable, "-m", "ddvs_service.cli", *args], cwd=ROOT, stdout=log,
+        proc = subprocess.Popen([*wrapper, sys.executable, "-m", "ddvs.cli", *args], cwd=ROOT, stdout=log,
                                 stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
             yield proc

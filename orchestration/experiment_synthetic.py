@@ -39,6 +39,7 @@ from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from sim.freeflyer import Frame, FreeFlyer, render_view
 from sim.surfaces import paper_saddle
+from sim.textures import load_texture
 
 F64 = NDArray[np.float64]
 
@@ -46,7 +47,7 @@ PAPER_T = (0.17, -0.11, 0.01)
 PAPER_R = (-0.1, -0.31, 1.04)
 PAPER_IMAGES = {"dvs": 905, "ddvs": 762}
 PAPER_ROI_SIZE = (200, 150)  # pixels used by the paper's synthetic experiment, centred on the control point
-TEXTURE = "oxford/graf/img1.png"  # in the datasets folder (ddvs_service.datasets)
+TEXTURE = "graf"  # a shipped texture (sim.textures) or an image file
 LAW_NAMES = {"dvs": "dvs_reduced", "ddvs": "ddvs"}
 
 
@@ -231,20 +232,6 @@ def run_synthetic(law: str, setup: SyntheticSetup = SyntheticSetup(), geometry: 
         positions=pos,
         rotations=np.array(rotations),
     )
-
-
-def load_texture(path: str) -> NDArray[np.float32]:
-    """The grey texture image at `path` (a file, or a name in the datasets folder such as "oxford/graf/img1.png")
-    as float32 grey levels."""
-    import cv2
-
-    from ddvs_service.datasets import dataset_image
-
-    file = path if Path(path).is_file() else str(dataset_image(path))
-    image = cv2.imread(file, cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise ValueError(f"cannot read the texture image {file!r}")
-    return image.astype(np.float32)
 
 
 def _coupling(v: F64, v_rot: F64, mask: NDArray[np.bool_]) -> float:

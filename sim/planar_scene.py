@@ -17,24 +17,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.datasets import dataset_image
 from ddvs_service.lie import so3_exp
+from ddvs_service.registration.warp_distance import roi_grid
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
-TEXTURES = ("oxford/graf/img1.png", "oxford/boat/img1.png", "oxford/wall/img1.png", "ef/notredame/img1.png")
-
-
-def load_texture(name: str, blur_sigma: float = 1.0) -> F32:
-    """Grey texture (float32, 0–255) of the datasets folder (`ddvs_service.datasets`), e.g. "oxford/boat/img1.png",
-    blurred by `blur_sigma` texels to limit aliasing."""
-    path = dataset_image(name)
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise FileNotFoundError(f"texture {path} could not be read; expected a grey/colour image file there")
-    image = image.astype(np.float32)
-    return cv2.GaussianBlur(image, (0, 0), blur_sigma) if blur_sigma > 0 else image
+POSTER_BLUR_SIGMA = 1.0  # texels: the Gaussian that limits aliasing when a poster texture is rendered smaller
 
 
 def plane_homography(K: F64, R_c: F64, t_c: F64, depth: float) -> F64:
@@ -73,39 +62,6 @@ class PlanarScene:
     def homography(self, R_c: F64, t_c: F64) -> F64:
         """Ground truth reference→current homography for the current pose `(R_c, t_c)` in the reference frame."""
         return plane_homography(self.intrinsics.K, R_c, t_c, self.depth)
-
-
-def roi_grid(roi: tuple[int, int, int, int]) -> F64:
-    """Pixel centres of the ROI `(x, y, w, h)` as a (w·h, 2) array of (u, v)."""
-    x, y, w, h = roi
-    u, v = np.meshgrid(np.arange(x, x + w, dtype=np.float64), np.arange(y, y + h, dtype=np.float64))
-    return np.stack([u.ravel(), v.ravel()], axis=1)
-
-
-def apply_homography(H: F64, points: F64) -> F64:
-    """Map (N, 2) pixel points through H (dehomogenised)."""
-    q = np.c_[points, np.ones(len(points))] @ H.T
-    return q[:, :2] / q[:, 2:3]
-
-
-def roi_samples(roi: tuple[int, int, int, int], n: int = 16) -> F64:
-    """An n × n grid of (u, v) points spread evenly over the ROI from corner pixel centre to corner pixel centre, as
-    a (n², 2) array: RMS distances over it approximate those over every ROI pixel (`roi_grid`) at a fraction of
-    the cost, since a homography moves neighbouring pixels smoothly."""
-    x, y, w, h = roi
-    u, v = np.meshgrid(np.linspace(x, x + w - 1, n), np.linspace(y, y + h - 1, n))
-    return np.stack([u.ravel(), v.ravel()], axis=1)
-
-
-def rms_distance(H_a: F64, H_b: F64, points: F64) -> float:
-    """RMS distance (pixels) between where two homographies send the (N, 2) `points`."""
-    return float(np.sqrt(np.mean(np.sum((apply_homography(H_a, points) - apply_homography(H_b, points)) ** 2,
-                                        axis=1))))
-
-
-def warp_rms(H_est: F64, H_true: F64, roi: tuple[int, int, int, int]) -> float:
-    """RMS distance (pixels) between where two homographies send the ROI pixels."""
-    return rms_distance(H_est, H_true, roi_grid(roi))
 
 
 def visible_fraction(H: F64, roi: tuple[int, int, int, int], width: int, height: int) -> float:
