@@ -3,9 +3,16 @@
 Layout rules (OMG CDR / XCDR1 as emitted by rosidl typesupport and `rosbags`):
 - A payload starts with the 4-byte encapsulation header `00 01 00 00` (representation CDR_LE, options 0).
 - Offsets for alignment count from the first byte *after* that header. A primitive of size n ∈ {1, 2, 4, 8} is
-  preceded by zero padding up to the next multiple of n.
+  preceded by padding up to the next multiple of n (the writer writes zeros).
 - `string`: uint32 length including the terminating NUL, the UTF-8 bytes, the NUL.
 - `sequence<T>`: uint32 element count, then the elements (each aligned as T). Fixed arrays `T[n]` have no count.
+
+The reader accepts what ROS 2's own reader (Fast-CDR through rmw_fastrtps / rmw_zenoh typesupport) accepts, so that
+every payload a ROS 2 node sends decodes (docs/protocol.md, "What the decoders accept"): padding bytes of any value
+(rclpy leaves them uninitialised), any number of bytes after the last field (rclpy's `serialize_message` returns a
+buffer sized by an estimate that is up to 8 bytes per empty sequence longer than the fields), options bytes 2–3 of
+the header ignored, a bool byte other than 0 as true, a string of length 0 as "", a string whose last byte is not
+NUL as all its bytes, invalid UTF-8 with U+FFFD replacements (as rclpy converts it).
 
 The reader never allocates from a length field before checking it against both the configured maximum
 (`MessageTooLarge`) and the bytes actually left (`TruncatedMessage`).
@@ -145,10 +152,8 @@ class CdrReader:
         return self._take(1, what)[0]
 
     def boolean(self, what: str) -> bool:
-        b = self.uint8(what)
-        if b > 1:
-            raise InconsistentMessage(f"{what}: boolean byte is {b}; expected 0 or 1")
-        return b == 1
+        """Any non-zero byte is true (rosidl's Fast-CDR typesupport reads a bool as a uint8 and tests it != 0)."""
+        return self.uint8(what) != 0
 
     def uint32(self, what: str) -> int:
         self._align(4)
@@ -163,17 +168,14 @@ class CdrReader:
         return float(_F64.unpack(self._take(8, what))[0])
 
     def string(self, what: str) -> str:
+        """Length 0 reads as "", a missing NUL terminator keeps every byte, invalid UTF-8 becomes U+FFFD — what
+        Fast-CDR and rclpy make of such strings."""
         n = self.uint32(f"{what} length")
         if n == 0:
-            raise InconsistentMessage(f"{what}: string length 0; a CDR string counts its NUL terminator (length ≥ 1)")
+            return ""
         self._check_length(n, 1, what)
         raw = self._take(n, what)
-        if raw[n - 1] != 0:
-            raise InconsistentMessage(f"{what}: string of length {n} does not end with a NUL byte")
-        try:
-            return str(raw[: n - 1], "utf-8")
-        except UnicodeDecodeError as exc:
-            raise InconsistentMessage(f"{what}: not valid UTF-8 ({exc.reason} at byte {exc.start})") from exc
+        return str(raw[: n - 1] if raw[n - 1] == 0 else raw, "utf-8", "replace")
 
     def float64_array(self, what: str, length: int | None = None) -> NDArray[np.float64]:
         """Fixed `float64[length]` or, with `length=None`, `sequence<float64>`; returns a writable copy."""
@@ -186,7 +188,7 @@ class CdrReader:
 
     def string_sequence(self, what: str) -> list[str]:
         n = self.uint32(f"{what} count")
-        self._check_length(n, 5, what)  # each element takes at least a length and a NUL
+        self._check_length(n, 4, what)  # each element takes at least its length field
         return [self.string(f"{what}[{i}]") for i in range(n)]
 
     def uint8_sequence(self, what: str) -> memoryview:
@@ -194,8 +196,3 @@ class CdrReader:
         n = self.uint32(f"{what} count")
         self._check_length(n, 1, what)
         return self._take(n, what)
-
-    def expect_end(self, what: str) -> None:
-        """Allow at most 7 bytes of trailing alignment padding after the last field."""
-        if self.remaining > 7:
-            raise InconsistentMessage(f"{what}: {self.remaining} unexpected bytes after the last field")

@@ -350,7 +350,6 @@ def decode_image(buf: bytes | bytearray | memoryview, max_bytes: int = IMAGE_MAX
     if height * step > max_bytes:
         raise MessageTooLarge(f"image height × step = {height} × {step} bytes exceeds the maximum of {max_bytes}")
     data = r.uint8_sequence("data")
-    r.expect_end("sensor_msgs/Image")
     return Image(header, height, width, encoding, is_bigendian, step, np.frombuffer(data, dtype=np.uint8))
 
 
@@ -418,7 +417,6 @@ def decode_camera_info(buf: bytes | bytearray | memoryview, max_bytes: int = MES
         width=r.uint32("roi.width"),
         do_rectify=r.boolean("roi.do_rectify"),
     )
-    r.expect_end("sensor_msgs/CameraInfo")
     return CameraInfo(header, height, width, model, d, k, rr, p, binning_x, binning_y, roi)
 
 
@@ -435,7 +433,6 @@ def decode_twist_stamped(buf: bytes | bytearray | memoryview, max_bytes: int = M
     header = _read_header(r)
     linear = [r.float64(f"twist.linear.{c}") for c in "xyz"]
     angular = [r.float64(f"twist.angular.{c}") for c in "xyz"]
-    r.expect_end("geometry_msgs/TwistStamped")
     return TwistStamped(header, np.array(linear), np.array(angular))
 
 
@@ -457,5 +454,4 @@ def decode_joint_state(buf: bytes | bytearray | memoryview, max_bytes: int = MES
     position = r.float64_array("position")
     velocity = r.float64_array("velocity")
     effort = r.float64_array("effort")
-    r.expect_end("sensor_msgs/JointState")
     return JointState(header, name, position, velocity, effort)
