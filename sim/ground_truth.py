@@ -1,7 +1,7 @@
 """Ground-truth projective parameters `G`, `e`, `ρ*` of (2) from the reference and current camera poses and the
 scene (simulation and tests only; the controller never sees poses or depth).
 
-Gauge (fixes the freedoms of (2), as in shared/notes/plane-parallax-estimation.md):
+Gauge (fixes the freedoms of (2), as in docs/plane-parallax-estimation.md):
 - plane gauge: the reference plane is the surface's `reference_plane` — the target plane itself for a `Plane`, the
   plane fronto-parallel to the reference camera through the saddle centre (`Z = 1 m` in the paper) for a `Saddle`.
   With its scaled normal `n*` (`n*ᵀ X* = 1`, 1/m) and the relative pose `X = R X* + t` (current from reference

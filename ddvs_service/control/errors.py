@@ -3,7 +3,7 @@
 Inputs are the estimated `G ∈ SL(3)` (pixels → pixels homography of the reference plane), the pixel epipole `e`
 (homogeneous 3-vector, same scale gauge as `ρ*`), the projective parallax `ρ*` of the control point and the
 intrinsics `K`. Never depth or pose. `m_star` (`m*'`) and `c_star` (`c*'`) are normalised points `K⁻¹ p`
-(third component 1 for a pixel). Equation numbers refer to `shared/paper/EQUATIONS.md`.
+(third component 1 for a pixel). Equation numbers refer to the paper (`docs/equations.md`).
 
 Frames: every error is expressed in the current camera frame (OpenCV axes); with `v` the current camera's body
 twist `[v; ω]`, `dε/dt = L v` (see `interaction`).
