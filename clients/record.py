@@ -1,11 +1,12 @@
-"""`ddvs record`: record a servo run from Zenoh into a recording directory (format: `clients/recording.py`,
-docs/recording.md).
+"""`ddvs record`: record a servo run from Zenoh into a rosbag2 bag (MCAP storage; `clients/bag.py`,
+docs/recording.md) with `clients.bag_recorder.BagRecorder`; `ddvs record --recover BAG` makes a killed recorder's
+bag whole.
 
-Recorded keys: `servo/status` and `servo/state` (JSON, every sample), `servo/twist`, `arm/joint_states`,
-`arm/ground_truth` (when a simulator publishes it), `camera/info` (only when it changes) and, with `--frames`, the
-camera images (every `--frame-every`-th one, PNG). Zenoh callbacks only enqueue the raw payload with its arrival
-time; one writer thread decodes and writes, so a slow disk never blocks the Zenoh session (frames beyond a bounded
-queue are dropped and counted; the small messages are never dropped).
+`Recorder` writes the older JSON Lines recording (`clients/recording.py`) that `orchestration/arm_run.py` still
+uses: `servo/status` and `servo/state` (JSON, every sample), `servo/twist`, `arm/joint_states`, `arm/ground_truth`,
+`camera/info` (only when it changes) and optionally every N-th camera image (PNG). Zenoh callbacks only enqueue the
+raw payload with its arrival time; one writer thread decodes and writes (frames beyond a bounded queue are dropped
+and counted; the small messages are never dropped).
 """
 
 from __future__ import annotations
@@ -160,7 +161,8 @@ class Recorder:
 
 
 def recording_meta(keys: Keys, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The `meta.json` content: the recorded key expressions, the start time, and `extra` (e.g. a reference pose)."""
+    """A recording's metadata (`meta.json`, or a bag's `ddvs` metadata record): the recorded key expressions, the
+    start time, and `extra` (e.g. a reference pose)."""
     return {"prefix": keys.prefix, "robot": keys.robot, "started_ns": time.time_ns(),
             "keys": {stream: keys.key(name) for stream, name in {**RECORDED_KEYS, "frames": "camera_image"}.items()},
             **(extra or {})}
@@ -169,12 +171,22 @@ def recording_meta(keys: Keys, extra: dict[str, Any] | None = None) -> dict[str,
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
 
-    parser.add_argument("out", help="new (or empty) recording directory")
-    parser.add_argument("--frames", action="store_true", help="also record camera frames (PNG)")
-    parser.add_argument("--frame-every", type=int, default=1, help="with --frames: keep every N-th frame (default 1)")
+    parser.add_argument("out", help="new (or empty) bag directory; with --recover: the bag of a killed recorder")
+    parser.add_argument("--recover", action="store_true",
+                        help="make a killed recorder's bag readable: rewrite its files from their complete chunks "
+                             "and write metadata.yaml, then print the messages kept per topic")
+    parser.add_argument("--frames", choices=("raw", "png", "jpeg", "none"), default="raw",
+                        help="camera frames as published (raw sensor_msgs/Image, default), re-encoded as "
+                             "sensor_msgs/CompressedImage (png, jpeg), or not at all")
+    parser.add_argument("--frame-every", type=int, default=1, help="keep every N-th camera frame (default 1)")
+    parser.add_argument("--jpeg-quality", type=int, default=90, help="with --frames jpeg (default 90)")
+    parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
+                        help="MCAP chunk compression (default zstd)")
+    parser.add_argument("--flush-period", type=float, default=0.5,
+                        help="seconds between chunk closes, at most 1 (crash safety; default 0.5)")
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
     parser.add_argument("--meta", action="append", default=[], metavar="KEY=JSON",
-                        help="extra meta.json entry, e.g. reference_pose='[1,0,...]' (repeatable)")
+                        help="extra metadata entry, e.g. reference_pose='[1,0,...]' (repeatable)")
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
     add_zenoh_arguments(parser)
@@ -196,13 +208,19 @@ def _parse_meta(items: list[str]) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     import signal
 
-    from clients.recording import RecordingWriter
+    from clients.bag import BagWriter, recover_bag
+    from clients.bag_recorder import BagRecorder
+    from clients.channels import run_channels
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
 
     setup_logging("INFO")
+    if args.recover:
+        print(json.dumps(recover_bag(args.out, args.compression), indent=2))
+        return 0
     keys = Keys(args.prefix, args.robot)
-    writer = RecordingWriter(args.out, recording_meta(keys, _parse_meta(args.meta)))
+    writer = BagWriter(args.out, run_channels(keys, args.frames), recording_meta(keys, _parse_meta(args.meta)),
+                       compression=args.compression, flush_period_s=args.flush_period)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -211,13 +229,13 @@ def run(args: argparse.Namespace) -> int:
         timer.daemon = True
         timer.start()
     with open_session(session_config_from_args(args)) as session:
-        recorder = Recorder(session, keys, writer, args.frame_every if args.frames else 0)
+        recorder = BagRecorder(session, keys, writer, args.frames, args.frame_every, args.jpeg_quality)
         try:
             recorder.run(stop)
         finally:
             recorder.close()
             recorder.drain()
             writer.close()
-    log.info("recorded %s into %s (rejected %d, frames dropped %d)", writer.counts, args.out, recorder.rejected,
-             recorder.frames_dropped)
+    log.info("recorded %s into %s (received %s, rejected %d, frames dropped %d)", writer.counts, args.out,
+             recorder.received, recorder.rejected, recorder.frames_dropped)
     return 0
