@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "record": ("clients.record", "record a servo run (status, twists, joints, ground truth, frames) to a directory"),
     "plot": ("clients.plot", "plot a recording: velocities, error norm, 3-D camera trajectory, pose error"),
     "router": ("ddvs_service.router_cli", "a Zenoh router in Python (one per host; the host's nodes are its clients)"),
+    "security": ("ddvs_service.security_cli", "secure a robot's Zenoh network: `ddvs security init --robot NAME OUT/`"),
     "demo": ("orchestration.demo", "the paper's real-data experiment on the simulated UR5, real time, with a report"),
 }
 

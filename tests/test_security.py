@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
 import threading
 import time
@@ -33,7 +34,7 @@ from ddvs_service.protocol.security import (
     render_json5,
     router_config,
     warn_if_insecure,
-    write_examples,
+    write_configs,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -152,25 +153,54 @@ def _replies(session: zenoh.Session, payload: bytes, timeout: float = 1.0) -> li
 # --- certificates ---------------------------------------------------------------------------------------------------
 
 
-def test_make_dev_certs_issues_verifiable_role_certificates_and_is_idempotent(tmp_path: Path) -> None:
+def _x509(pem: Path) -> str:
+    return subprocess.run(["openssl", "x509", "-in", str(pem), "-noout", "-subject", "-ext",
+                           "subjectAltName,extendedKeyUsage"], check=True, capture_output=True, text=True).stdout
+
+
+def test_certificates_per_purpose_router_serves_roles_only_connect(tmp_path: Path) -> None:
     first = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
     assert "created" in first.stdout
-    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    for name in ("router", *ROLES):
+        pem = tmp_path / name / f"{name}.pem"
+        subprocess.run(["openssl", "verify", "-CAfile", str(tmp_path / name / "ca.pem"), str(pem)], check=True,
+                       capture_output=True)
+        text = _x509(pem)
+        assert f"CN = {name}" in text or f"CN={name}" in text
+        if name == "router":
+            assert "TLS Web Server Authentication" in text and "Client Authentication" not in text
+            assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text
+        else:
+            assert "TLS Web Client Authentication" in text and "Server Authentication" not in text
+            assert "Alternative Name" not in text and "localhost" not in text
+        assert {p.name for p in (tmp_path / name).iterdir()} == {"ca.pem", f"{name}.key", f"{name}.pem"}
+        assert (tmp_path / name / f"{name}.key").stat().st_mode & 0o077 == 0
+    assert not any(list((tmp_path / role).glob("router*")) for role in ROLES)  # the router's key is only in router/
+
+
+def test_certificates_are_idempotent_and_reissued_when_missing_or_renamed(tmp_path: Path) -> None:
+    subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     second = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
     assert second.stdout == ""
-    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
-    for role in ("router", *ROLES):
-        pem = tmp_path / f"{role}.pem"
-        subprocess.run(["openssl", "verify", "-CAfile", str(tmp_path / "ca.pem"), str(pem)], check=True,
-                       capture_output=True)
-        text = subprocess.run(["openssl", "x509", "-in", str(pem), "-noout", "-subject", "-ext", "subjectAltName"],
-                              check=True, capture_output=True, text=True).stdout
-        assert f"CN = {role}" in text or f"CN={role}" in text
-        assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text
-    (tmp_path / "bridge.pem").unlink()  # a missing certificate is re-issued, the others are kept
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    (tmp_path / "bridge" / "bridge.pem").unlink()  # a missing certificate is re-issued, the others are kept
     third = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
-    assert third.stdout.strip() == f"created {tmp_path}/bridge.pem (CN=bridge)"
-    assert (tmp_path / "ca.pem").read_bytes() == before["ca.pem"]
+    assert third.stdout.strip() == f"created {tmp_path}/bridge/bridge.pem"
+    assert (tmp_path / "ca" / "ca.pem").read_bytes() == before[tmp_path / "ca" / "ca.pem"]
+    renamed = subprocess.run(["bash", str(SCRIPT), str(tmp_path), "--router-name", "robot-host.lab"], check=True,
+                             capture_output=True, text=True)
+    assert renamed.stdout.strip() == f"created {tmp_path}/router/router.pem"
+    assert "DNS:robot-host.lab" in _x509(tmp_path / "router" / "router.pem")
+
+
+def test_certificate_roles_come_from_ddvs_cert_roles(tmp_path: Path) -> None:
+    env = {**os.environ, "DDVS_CERT_ROLES": "service operator"}
+    subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, env=env)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == ["ca", "operator", "router", "service"]
+    env["DDVS_CERT_ROLES"] = "router"
+    refused = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], capture_output=True, text=True, env=env)
+    assert refused.returncode == 2 and "not 'router' or 'ca'" in refused.stderr
 
 
 def test_make_dev_certs_without_directory_explains_usage() -> None:
@@ -281,10 +311,14 @@ def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_
     with mtls_network(certs) as net:
         port = net.endpoint.rsplit(":", 1)[1]
         attempts = {
-            "no certificate": client_config("operator", [net.endpoint], TlsFiles(ca=certs / "ca.pem"), mtls=False),
+            "no certificate": client_config("operator", [net.endpoint], TlsFiles(ca=certs / "operator" / "ca.pem"),
+                                            mtls=False),
             "certificate of another CA": client_config(
-                "operator", [net.endpoint], TlsFiles(certs / "ca.pem", rogue_certs / "operator.pem",
-                                                     rogue_certs / "operator.key")),
+                "operator", [net.endpoint], TlsFiles(certs / "operator" / "ca.pem",
+                                                     rogue_certs / "operator" / "operator.pem",
+                                                     rogue_certs / "operator" / "operator.key")),
+            "the router's own certificate (serverAuth only)": client_config(
+                "operator", [net.endpoint], TlsFiles.for_role(certs, "router")),
             "plain TCP": client_config("operator", [f"tcp/127.0.0.1:{port}"]),
         }
         for what, config in attempts.items():
@@ -292,6 +326,41 @@ def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_
                 net.open(config)
                 pytest.fail(f"a client with {what} connected")
         assert _replies(mtls_client(net, certs, "operator"), b"x", timeout=0.3) == []  # the router itself still runs
+
+
+@pytest.mark.parametrize("impostor", ROLES)
+def test_a_router_with_a_role_certificate_is_refused_by_every_client(certs: Path, impostor: str) -> None:
+    """The rogue-router attack: the real router goes down and one holding a role's certificate (right CA) listens
+    on the same endpoint. Every role's client refuses it (no serverAuth, no router name), stays disconnected, and
+    nothing it publishes reaches the impostor; the real router's certificate on the same spot is accepted (control)."""
+    endpoint = f"tls/localhost:{free_port()}"
+    real = zenoh.open(_zenoh_config(router_config(KEYS, certificate_identities(), [endpoint],
+                                                  TlsFiles.for_role(certs, "router"))))
+    clients = {role: zenoh.open(_zenoh_config(client_config(role, [endpoint], TlsFiles.for_role(certs, role))))
+               for role in ROLES}
+    try:
+        assert all(c.info.routers_zid() == [real.info.zid()] for c in clients.values())
+        real.close()
+        for attempt, listen_as in enumerate((impostor, "router")):
+            rogue_config = router_config(KEYS, {}, [endpoint], TlsFiles.for_role(certs, listen_as))
+            del rogue_config["access_control"]  # the impostor's router lets everything through
+            rogue = zenoh.open(_zenoh_config(rogue_config))
+            heard = Inbox(rogue, f"{KEYS.base}/**").payloads
+            deadline = time.monotonic() + 5.0  # clients retry every 1–4 s
+            while time.monotonic() < deadline and not (attempt == 1 and heard):
+                for role, session in clients.items():
+                    session.put(KEYS.key(ROLE_GRANTS[role].publish[0]) if ROLE_GRANTS[role].publish
+                                else KEYS.servo_status, role.encode())
+                time.sleep(0.1)
+            joined = [r for r, c in clients.items() if c.info.routers_zid()]
+            rogue.close()
+            if attempt == 0:
+                assert joined == [] and heard == [], f"a router holding the {impostor} certificate was accepted"
+            else:
+                assert joined and heard, "control: the router's own certificate must be accepted"
+    finally:
+        for session in clients.values():
+            session.close()
 
 
 # --- user/password over server-side TLS -----------------------------------------------------------------------------
@@ -303,7 +372,7 @@ def test_password_identities_wrong_credentials_refused_and_roles_enforced(certs:
     tls_router = TlsFiles.for_role(certs, "router")
     with network(lambda ep: router_config(KEYS, password_identities(), [ep], tls_router, mtls=False,
                                           password_file=passwords)) as net:
-        ca_only = TlsFiles(ca=certs / "ca.pem")
+        ca_only = TlsFiles(ca=certs / "operator" / "ca.pem")
 
         def client(role: str, user: str, password: str) -> zenoh.Session:
             return net.open(client_config(role, [net.endpoint], ca_only, mtls=False, credentials=(user, password)))
@@ -375,11 +444,11 @@ def test_identity_and_role_errors_say_what_was_expected() -> None:
 
 def test_example_configurations_are_generated_and_load_in_zenoh(tmp_path: Path) -> None:
     shipped = REPO / "configs" / "security"
-    written = write_examples(tmp_path, Keys("ddvs", "robot0"), "certs", "tls/localhost:7447")
+    written = write_configs(tmp_path, Keys("ddvs", "robot0"), "certs", "tls/localhost:7447")
     for path in written:
         assert (shipped / path.name).read_text(encoding="utf-8") == path.read_text(encoding="utf-8"), (
             f"configs/security/{path.name} is out of date: run "
-            "`python -m ddvs_service.protocol.security configs/security`")
+            "`ddvs security init --robot robot0 --certs-dir certs --configs-only configs/security`")
         zenoh.Config.from_file(str(path))  # valid JSON5 with keys Zenoh knows
     assert render_json5({"mode": "client"}, "a\nb").startswith("// a\n// b\n{")
 

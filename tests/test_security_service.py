@@ -33,6 +33,7 @@ from ddvs_service.protocol import (
     image_from_array,
 )
 from ddvs_service.protocol.security import (
+    ROLES,
     TlsFiles,
     certificate_identities,
     client_config,
@@ -187,3 +188,62 @@ def test_only_the_bridge_moves_the_real_arm_sim_over_mtls(certs: Path, tmp_path:
             proc.communicate()
         for session in reversed(sessions):
             session.close()
+
+
+@pytest.mark.slow
+def test_ddvs_serve_refuses_a_router_that_holds_a_role_certificate(certs: Path, tmp_path: Path) -> None:
+    """The rogue-router attack on the real `ddvs serve`: its router goes down and, one after the other, a router
+    holding each role's certificate takes over the endpoint and the attacker sends frames, `get_state` and `stop`
+    through it. The service never joins it (no reply, no status, no twist), logs a clear error, and joins the real
+    router's certificate on the same endpoint at once (control)."""
+    endpoint = f"tls/localhost:{free_port()}"
+
+    def router_as(holder: str) -> zenoh.Session:
+        config = router_config(KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, holder))
+        if holder != "router":
+            del config["access_control"]  # the impostor lets everything through
+        return zenoh.open(_zenoh_config(config))
+
+    zenoh_file = tmp_path / "service.json5"
+    zenoh_file.write_text(render_json5(client_config("service", [endpoint], TlsFiles.for_role(certs, "service")),
+                                       "ddvs serve as the service role"))
+    serve_file = tmp_path / "serve.json"
+    serve_file.write_text(json.dumps({
+        "robot": KEYS.robot, "zenoh": {"mode": "client", "connect": [endpoint], "zenoh_config": str(zenoh_file)},
+        "state_dir": str(tmp_path / "state"),
+        "intrinsics": {"fx": 420.0, "fy": 420.0, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
+    }))
+    real = router_as("router")
+    log_path = tmp_path / "serve.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    with log_path.open("w") as log_file:
+        proc = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(serve_file)],
+                                stderr=log_file, text=True, env=env)
+    operator = zenoh.open(_zenoh_config(client_config("operator", [endpoint], TlsFiles.for_role(certs, "operator"))))
+    frame = encode_image(image_from_array(texture(), "mono8", Header(Time.now(), "camera")))
+    try:
+        deadline = time.monotonic() + 60.0
+        while command(operator, timeout=1.0, op="get_state") is None:
+            assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text()
+        operator.close()
+        real.close()
+        for holder in (*ROLES, "router"):
+            rogue = router_as(holder)
+            heard = Inbox(rogue, f"{KEYS.base}/servo/**").payloads
+            replies = []
+            deadline = time.monotonic() + (4.5 if holder != "router" else 30.0)  # clients retry every 1–4 s
+            while time.monotonic() < deadline and not replies:
+                rogue.put(KEYS.camera_image, frame)
+                replies = [r for r in rogue.get(KEYS.servo_command, payload=dump(Command(op="get_state")),
+                                                timeout=0.3) if r.ok is not None]
+            rogue.close()
+            assert proc.poll() is None, log_path.read_text()
+            if holder != "router":
+                assert replies == [] and heard == [], f"ddvs serve joined a router holding the {holder} certificate"
+        assert replies, "control: the service must join a router holding the router's certificate"
+        lines = [json.loads(line) for line in log_path.read_text().splitlines() if line.startswith("{")]
+        lost = [e for e in lines if e["level"] == "ERROR" and "lost the connection to the router" in e["msg"]]
+        assert lost and lost[0]["endpoints"] == [endpoint]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)

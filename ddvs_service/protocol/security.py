@@ -16,18 +16,16 @@ authentication). The rules are enforced by the router that every client connects
 client configuration comes from `client_config`. Flows are seen from the router: `ingress` = sent by that client,
 `egress` = delivered to it, so a publication needs the publisher's `put` (ingress) and the subscriber's `put` (egress).
 
-`warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS.
-Run `python -m ddvs_service.protocol.security OUT_DIR` to regenerate the example configurations of
-`configs/security/`.
+`warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS;
+`check_robot_covered` refuses a robot that the router configuration beside a node's own does not cover.
+`write_configs` writes a robot's configurations (`ddvs security init`, which also issues the certificates: `pki`).
 """
 
 from __future__ import annotations
 
-import argparse
 import ipaddress
 import json
 import logging
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -178,13 +176,18 @@ class TlsFiles:
 
     @classmethod
     def for_role(cls, cert_dir: str | Path, role: str) -> TlsFiles:
-        """The files `scripts/make_dev_certs.sh DIR` writes for `role` (`DIR/ca.pem`, `DIR/<role>.pem|.key`)."""
-        d = Path(cert_dir)
+        """The files `pki.issue_certificates(DIR, ...)` writes for `role` or the router (`DIR/<role>/ca.pem`,
+        `DIR/<role>/<role>.pem|.key`)."""
+        d = Path(cert_dir) / role
         return cls(ca=d / "ca.pem", certificate=d / f"{role}.pem", key=d / f"{role}.key")
 
     def section(self, mtls: bool, listening: bool) -> dict[str, Any]:
-        """The `transport/link/tls` section (paths as given; Zenoh resolves them against its working directory)."""
+        """The `transport/link/tls` section (paths as given; Zenoh resolves them against its working directory). A
+        connecting node verifies that the server's certificate names the host it connects to
+        (`verify_name_on_connect`): only the router's certificate does (`pki`)."""
         out: dict[str, Any] = {"root_ca_certificate": str(self.ca), "enable_mtls": mtls}
+        if not listening:
+            out["verify_name_on_connect"] = True
         if mtls or listening:
             if self.certificate is None or self.key is None:
                 raise ValueError(f"TLS {'mutual authentication' if mtls else 'listening'} needs this node's "
@@ -322,56 +325,99 @@ def warn_if_insecure(session_config: SessionConfig, logger: logging.Logger) -> l
     return bad
 
 
-def write_examples(out_dir: str | Path, keys: Keys, cert_dir: str, router: str) -> list[Path]:
-    """Write the example configurations of `configs/security/`: `router-mtls.json5` (mutual TLS, identities by
-    certificate), `router-password.json5` (server TLS + user/password), and per role `<role>-mtls.json5` and
-    `<role>-password.json5` client configurations. Returns the paths written."""
+PASSWORD_PLACEHOLDER = "CHANGE-ME-{role}"
+
+
+def write_configs(
+    out_dir: str | Path,
+    keys: Keys,
+    cert_dir: str,
+    router: str,
+    roles: Sequence[str] = ROLES,
+    passwords: Mapping[str, str] | None = None,
+    observers_read_frames: bool = True,
+) -> list[Path]:
+    """Write every Zenoh configuration of one robot's secured network into `out_dir`: `router-mtls.json5` (mutual
+    TLS, identities by certificate), `router-password.json5` (server TLS + user/password from
+    `<cert_dir>/router/passwords.txt`), and per role `<role>-mtls.json5` and `<role>-password.json5` client
+    configurations. Certificate paths are `<cert_dir>/<role>/...` as written (`pki` layout; Zenoh resolves relative
+    paths against the node's working directory). `passwords` (role → password) go into the client files, which are
+    then readable by their owner only; without them the files carry `CHANGE-ME-<role>`. Returns the paths written."""
+    unknown = [r for r in roles if r not in ROLES]
+    if unknown or not roles:
+        raise ValueError(f"roles {list(roles)}: expected one or more of {', '.join(ROLES)}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, tuple[dict[str, Any], str]] = {}
-    listen = [router]
+    listen, tls_router = [router], TlsFiles.for_role(cert_dir, "router")
+    by_cert = {r: i for r, i in certificate_identities().items() if r in roles}
+    by_user = {r: i for r, i in password_identities().items() if r in roles}
     files["router-mtls.json5"] = (
-        router_config(keys, certificate_identities(), listen, TlsFiles.for_role(cert_dir, "router"), mtls=True),
+        router_config(keys, by_cert, listen, tls_router, mtls=True, observers_read_frames=observers_read_frames),
         "Hub router: mutual TLS, each role recognised by its certificate's common name, deny-by-default access "
         "control.",
     )
     files["router-password.json5"] = (
-        router_config(keys, password_identities(), listen, TlsFiles.for_role(cert_dir, "router"), mtls=False,
-                      password_file=f"{cert_dir}/passwords.txt"),
+        router_config(keys, by_user, listen, tls_router, mtls=False, password_file=f"{cert_dir}/router/passwords.txt",
+                      observers_read_frames=observers_read_frames),
         "Hub router: server-side TLS, each role recognised by its user/password username (dictionary file of "
         "'user:password' lines), deny-by-default access control.",
     )
-    for role in ROLES:
+    for role in roles:
         files[f"{role}-mtls.json5"] = (
             client_config(role, [router], TlsFiles.for_role(cert_dir, role), mtls=True),
             f"The {role}'s node: client of the hub router, mutual TLS with the '{role}' certificate.",
         )
+        password = passwords[role] if passwords else PASSWORD_PLACEHOLDER.format(role=role)
         files[f"{role}-password.json5"] = (
-            client_config(role, [router], TlsFiles(ca=Path(cert_dir) / "ca.pem"), mtls=False,
-                          credentials=(role, f"CHANGE-ME-{role}")),
+            client_config(role, [router], TlsFiles(ca=Path(cert_dir) / role / "ca.pem"), mtls=False,
+                          credentials=(role, password)),
             f"The {role}'s node: client of the hub router, server-side TLS and user/password '{role}'.",
         )
     written = []
     for name, (config, comment) in files.items():
         path = out / name
-        header = f"{comment}\nGenerated by `python -m ddvs_service.protocol.security` for {keys.base}; do not edit."
+        header = f"{comment}\nGenerated by `ddvs security init` for {keys.base}; do not edit."
         path.write_text(render_json5(config, header), encoding="utf-8")
+        if passwords and name.endswith("-password.json5") and not name.startswith("router"):
+            path.chmod(0o600)
         written.append(path)
     return written
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="write the example Zenoh security configurations")
-    parser.add_argument("out_dir", help="directory to write (configs/security)")
-    parser.add_argument("--prefix", default="ddvs")
-    parser.add_argument("--robot", default="robot0")
-    parser.add_argument("--certs", default="certs", help="directory of make_dev_certs.sh (as the nodes see it)")
-    parser.add_argument("--router", default="tls/localhost:7447", help="the hub router's endpoint")
-    args = parser.parse_args(argv)
-    for path in write_examples(args.out_dir, Keys(args.prefix, args.robot), args.certs, args.router):
-        print(path)
-    return 0
+def robots_granted(access_control: Mapping[str, Any]) -> set[str]:
+    """The robots (`<prefix>/<robot>`) whose keys the allow rules of a router's `access_control` section name (keys
+    ending in a `TOPICS` suffix); empty when access control is off (everything is allowed then)."""
+    if not access_control.get("enabled"):
+        return set()
+    suffixes = [f"/{spec.suffix}" for spec in TOPICS.values()]
+    return {key[: -len(suffix)] for rule in access_control.get("rules", []) for key in rule.get("key_exprs", [])
+            for suffix in suffixes if key.endswith(suffix)}
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def sibling_router_grants(zenoh_config: str | Path | None) -> dict[Path, set[str]]:
+    """The robots granted by each router configuration (`router*.json5` with access control on) in the directory of a
+    node's Zenoh configuration file, as `ddvs security init` writes them side by side; empty when there is none."""
+    if zenoh_config is None:
+        return {}
+    import zenoh
+
+    grants = {}
+    for path in sorted(Path(zenoh_config).parent.glob("router*.json5")):
+        section = json.loads(zenoh.Config.from_file(str(path)).get_json("access_control"))
+        if section.get("enabled"):
+            grants[path] = robots_granted(section)
+    return grants
+
+
+def check_robot_covered(keys: Keys, zenoh_config: str | Path | None) -> None:
+    """Raise `ValueError` when router configurations beside the node's Zenoh configuration file grant nothing to
+    robot `keys.base`: that router would silently drop every message of this robot."""
+    grants = sibling_router_grants(zenoh_config)
+    if grants and not any(keys.base in robots for robots in grants.values()):
+        granted = sorted(set().union(*grants.values()))
+        raise ValueError(
+            f"robot {keys.base!r} is not covered by the access control of {', '.join(str(p) for p in grants)} "
+            f"(beside {zenoh_config}), which grants {granted or 'no robot'}: that router would drop every message "
+            f"of this robot. Use the robot those rules were made for, or make rules for this one: "
+            f"`ddvs security init --robot {keys.robot} --prefix {keys.prefix} OUT/`")

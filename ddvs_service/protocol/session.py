@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import time
 from collections.abc import Mapping
@@ -146,8 +147,35 @@ def session_config_from_args(
 
 
 def open_session(cfg: SessionConfig) -> zenoh.Session:
-    """Open a Zenoh session; the caller must close it (`with open_session(cfg) as s:` or `s.close()`)."""
-    return zenoh.open(cfg.to_zenoh_config())
+    """Open a Zenoh session; the caller must close it (`with open_session(cfg) as s:` or `s.close()`). A client's
+    connections to its router are watched (`watch_router`)."""
+    session = zenoh.open(cfg.to_zenoh_config())
+    if cfg.mode == "client":
+        watch_router(session, cfg.connect)
+    return session
+
+
+def watch_router(session: zenoh.Session, endpoints: list[str], logger: logging.Logger | None = None) -> None:
+    """Log (logger `ddvs.session`) each router connection of `session`: INFO when one opens, ERROR when one closes
+    (nothing flows until a router accepts this node again). Zenoh keeps reconnecting to `endpoints` by itself; over
+    TLS it accepts only a server whose certificate chains to the CA and names the endpoint's host, so a node that
+    took over the endpoint with another certificate stays refused and this node stays disconnected (docs/security.md).
+    """
+    log = logger or logging.getLogger("ddvs.session")
+
+    def on_event(event: zenoh.TransportEvent) -> None:
+        transport = event.transport
+        if transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        extra = {"fields": {"router": str(transport.zid), "endpoints": endpoints}}
+        if event.kind == zenoh.SampleKind.PUT:
+            log.info("connected to router", extra=extra)
+        else:
+            log.error("lost the connection to the router: nothing is sent or received until a router at the "
+                      "endpoints accepts this node again (over TLS only one whose certificate names the endpoint's "
+                      "host: the real router)", extra=extra)
+
+    session.info.declare_transport_events_listener(on_event)
 
 
 def declare_publisher(session: zenoh.Session, keys: Keys, name: str) -> zenoh.Publisher:

@@ -1,0 +1,90 @@
+"""`ddvs security init --robot NAME [--roles R1,R2,...] OUT/`: secure one robot's Zenoh network in one step.
+
+Writes into `OUT/` (docs/security.md, "Securing a robot"):
+- the certificates per purpose (`protocol/pki.py`): `ca/`, `router/` (serverAuth, the router endpoint's host among its
+  names), one directory per role (clientAuth, CN = role);
+- `router/passwords.txt` (a random password per role, owner-only) for the user/password variant;
+- every configuration (`protocol/security.py::write_configs`): `router-mtls.json5`, `router-password.json5` and per
+  role `<role>-mtls.json5`, `<role>-password.json5` (with its password, owner-only), all for robot `<prefix>/<NAME>`.
+
+Paths inside the configurations are `OUT/...` as given: run the nodes from the directory `ddvs security init` ran in
+(or give an absolute OUT, or `--certs-dir` for where the files will be installed). Idempotent: existing certificates
+and passwords are kept. `--configs-only` writes the configurations with `CHANGE-ME-<role>` passwords and issues
+nothing (how `configs/security/` is made: `ddvs security init --robot robot0 --certs-dir certs --configs-only
+configs/security`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    init = sub.add_parser("init", help="certificates, passwords and every Zenoh configuration for one robot",
+                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    init.add_argument("out_dir", metavar="OUT", help="directory to write (created if needed)")
+    init.add_argument("--robot", required=True, help="robot name in the keys (`<prefix>/<robot>/...`)")
+    init.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
+    init.add_argument("--roles", action="append", metavar="ROLE,...",
+                      help="roles to create, comma-separated or repeated (default: every role: "
+                           "service,plant,bridge,operator,observer)")
+    init.add_argument("--router", default="tls/localhost:7447",
+                      help="the hub router's endpoint as the nodes reach it (default tls/localhost:7447)")
+    init.add_argument("--certs-dir", metavar="DIR", help="where the nodes find the certificate directories "
+                      "(default: OUT as given)")
+    init.add_argument("--no-observer-frames", action="store_true",
+                      help="observers may not read camera frames nor the reference image")
+    init.add_argument("--configs-only", action="store_true",
+                      help="write the configurations only (placeholder passwords, no certificates)")
+
+
+def _passwords(path: Path, roles: list[str]) -> dict[str, str]:
+    """The router's password file `path` (lines `user:password`), completed with a random password per missing role."""
+    import secrets
+
+    known: dict[str, str] = {}
+    if path.is_file():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            user, sep, password = line.partition(":")
+            if sep:
+                known[user] = password
+    for role in roles:
+        known.setdefault(role, secrets.token_urlsafe(24))
+    path.write_text("".join(f"{user}:{password}\n" for user, password in known.items()), encoding="utf-8")
+    path.chmod(0o600)
+    return known
+
+
+def run(args: argparse.Namespace) -> int:
+    from ddvs_service.protocol.keys import Keys
+    from ddvs_service.protocol.pki import DEFAULT_ROUTER_NAMES, issue_certificates
+    from ddvs_service.protocol.security import ROLES, Endpoint, write_configs
+
+    roles = [r for item in args.roles or [",".join(ROLES)] for r in item.replace(",", " ").split()]
+    try:
+        unknown = [r for r in roles if r not in ROLES]
+        if unknown or not roles:
+            raise ValueError(f"roles {unknown or roles}: expected some of {', '.join(ROLES)}")
+        keys = Keys(args.prefix, args.robot)
+        host = Endpoint.parse(args.router).host
+        cert_dir = args.certs_dir or args.out_dir.rstrip("/")
+        out = Path(args.out_dir)
+        passwords = None
+        if not args.configs_only:
+            names = list(dict.fromkeys([host, *DEFAULT_ROUTER_NAMES]))
+            for path in issue_certificates(out, roles, names):
+                print(f"created {path}")
+            passwords = _passwords(out / "router" / "passwords.txt", roles)
+        written = write_configs(out, keys, cert_dir, args.router, roles, passwords,
+                                observers_read_frames=not args.no_observer_frames)
+    except (RuntimeError, ValueError) as exc:
+        raise SystemExit(f"ddvs security init: {exc}") from None
+    for path in written:
+        print(f"wrote {path}")
+    configs = args.out_dir.rstrip("/")
+    print(f"robot {keys.base}: from this directory, start the router with `ddvs router --zenoh-config "
+          f"{configs}/router-mtls.json5 --listen {args.router}` and each node with `--mode client --connect "
+          f"{args.router} --zenoh-config {configs}/<role>-mtls.json5 --prefix {keys.prefix} --robot {keys.robot}`")
+    return 0
