@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import pytest
 
@@ -83,12 +85,13 @@ def test_tracker_contradiction_flag(scene: PlanarScene, initializer: GlobalIniti
     assert not agrees
 
 
-def test_feature_source_is_optional_and_selectable(scene: PlanarScene) -> None:
+@pytest.mark.parametrize("source", ["orb", "sift"])
+def test_feature_source_is_optional_and_selectable(scene: PlanarScene, source: Literal["orb", "sift"]) -> None:
     H = scene.homography(so3_exp(np.radians([5.0, 0.0, 90.0])), np.array([0.0, 0.05, 0.0]))
-    with_orb = GlobalInitializer(GlobalInitConfig(feature_source="orb"))
-    hypotheses = with_orb.hypotheses(scene.render(), ROI, scene.render(H))
-    orb = [h for h in hypotheses if h.source == "orb"]
-    assert len(orb) == 1 and warp_rms(orb[0].G, H, ROI) < 3.0
+    with_features = GlobalInitializer(GlobalInitConfig(feature_source=source))
+    hypotheses = with_features.hypotheses(scene.render(), ROI, scene.render(H))
+    found = [h for h in hypotheses if h.source == source]
+    assert len(found) == 1 and warp_rms(found[0].G, H, ROI) < 3.0
     assert any(h.source == "fourier-mellin" for h in hypotheses)
 
 

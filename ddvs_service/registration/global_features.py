@@ -1,4 +1,7 @@
-"""Optional feature-based hypotheses for the global initialiser (never required): ORB or AKAZE + RANSAC homography.
+"""Optional feature-based hypotheses for the global initialiser (never required): ORB or SIFT + RANSAC homography.
+
+ORB has binary descriptors (matched by Hamming distance), SIFT float ones (matched by L2 distance); both are in
+OpenCV's main modules (AKAZE is not: OpenCV 5 moved it to the contrib modules, which we do not install).
 
 Keypoints of the reference are taken inside the ROI only; matches pass Lowe's ratio test (0.8) and
 `cv2.findHomography(RANSAC, 3 px)`. The homography maps reference pixels to current pixels (0-based pixel centres,
@@ -17,16 +20,17 @@ from numpy.typing import NDArray
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 Roi = tuple[int, int, int, int]
-FeatureKind = Literal["orb", "akaze"]
+FeatureKind = Literal["orb", "sift"]
 MIN_INLIERS = 8
 
 
-def _detector(kind: FeatureKind) -> cv2.Feature2D:
+def _detector(kind: FeatureKind) -> tuple[cv2.Feature2D, int]:
+    """The detector-descriptor of `kind` and the matcher norm of its descriptors."""
     if kind == "orb":
-        return cv2.ORB_create(nfeatures=1500, edgeThreshold=15, patchSize=15)
-    if kind == "akaze":
-        return cv2.AKAZE_create()
-    raise ValueError(f"unknown feature source {kind!r}; expected 'orb' or 'akaze'")
+        return cv2.ORB.create(nfeatures=1500, edgeThreshold=15, patchSize=15), cv2.NORM_HAMMING
+    if kind == "sift":
+        return cv2.SIFT.create(nfeatures=1500), cv2.NORM_L2
+    raise ValueError(f"unknown feature source {kind!r}; expected 'orb' or 'sift'")
 
 
 def feature_homography(reference: F32, roi: Roi, current: F32, kind: FeatureKind) -> F64 | None:
@@ -34,17 +38,17 @@ def feature_homography(reference: F32, roi: Roi, current: F32, kind: FeatureKind
     x, y, w, h = roi
     mask = np.zeros(reference.shape, np.uint8)
     mask[y : y + h, x : x + w] = 255
-    det = _detector(kind)
+    det, norm = _detector(kind)
     k1, d1 = det.detectAndCompute(np.clip(reference, 0, 255).astype(np.uint8), mask)
     k2, d2 = det.detectAndCompute(np.clip(current, 0, 255).astype(np.uint8), None)
     if d1 is None or d2 is None or len(k1) < MIN_INLIERS or len(k2) < MIN_INLIERS:
         return None
-    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d1, d2, k=2)
+    pairs = cv2.BFMatcher(norm).knnMatch(d1, d2, k=2)
     good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < 0.8 * p[1].distance]
     if len(good) < MIN_INLIERS:
         return None
-    src = np.float32([k1[m.queryIdx].pt for m in good])
-    dst = np.float32([k2[m.trainIdx].pt for m in good])
+    src = np.array([k1[m.queryIdx].pt for m in good], dtype=np.float32)
+    dst = np.array([k2[m.trainIdx].pt for m in good], dtype=np.float32)
     H, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 3.0)
     if H is None or int(inliers.sum()) < MIN_INLIERS:
         return None

@@ -6,7 +6,7 @@ variants of the best screened warps — an oblique view compresses the ROI along
 start reproduces — searched only when stages 1–2 ended LOST, and its winner held to the stricter `tilt_max_cost`):
 1. hypotheses: direct Fourier–Mellin search on a coarse pyramid level (`global_fourier_mellin.py`: any in-plane
    rotation, scale 0.6–1.6, ROI anywhere with part of it outside the image), plus, when `config.feature_source` is
-   'orb' or 'akaze', one RANSAC homography from features (`global_features.py`); ranked by the robust photometric
+   'orb' or 'sift', one RANSAC homography from features (`global_features.py`); ranked by the robust photometric
    cost (`global_cost.py`) at that level;
 2. the `max_screened` (`max_screened_later` after stage 1) best distinct new hypotheses are screened by a planar
    refinement at the search level only (`global_screen.py`, all of them at once),
@@ -140,7 +140,7 @@ class GlobalInitConfig:
     """Hypothesis sources, refinement budget and the LOST criteria (costs are `global_cost` units in [0, 1])."""
 
     fourier_mellin: FourierMellinConfig = field(default_factory=FourierMellinConfig)
-    feature_source: Literal["none", "orb", "akaze"] = "none"
+    feature_source: Literal["none", "orb", "sift"] = "none"
     max_screened: int = 6  # distinct new hypotheses of stage 1 screened by a planar refinement at the search level
     max_screened_later: int = 8  # the same for stages 2 and 3 (searched only when stage 1 has no clear winner)
     screen_iterations: int = 8  # Gauss-Newton iterations per level of a screening

@@ -59,7 +59,7 @@ class RegistrationSettings(_Strict):
     gamma: float = 1.0
     defocus_px: float = 0.0
     global_init: bool = True
-    feature_source: Literal["none", "orb", "akaze"] = "none"
+    feature_source: Literal["none", "orb", "sift"] = "none"
 
     def engine_config(self) -> RegistrationConfig:
         return RegistrationConfig(
