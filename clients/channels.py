@@ -3,9 +3,9 @@
 Shared by the recorder (`clients/bag.py`, MCAP channels) and the Foxglove live view (`clients/foxglove_live.py`).
 ROS-typed keys (CDR payloads) become `cdr` channels whose schema is the full `ros2msg` definition
 (`ddvs_service.protocol.msgdefs`); JSON keys become `json` channels whose schema is the message's JSON schema
-(`ddvs_service/schemas/*.json`, the servo configuration's from its model). Topic names are the ROS names of the keys
-(`Keys.ros_topic`: `/<prefix>/<robot>/camera/image`, …); compressed frames go to `<image topic>/compressed`, as
-`image_transport` names them.
+(`ddvs_service/schemas/*.json`, the servo configuration's from its model). Topic names (`topic_name`) are the ROS
+names of the keys (`Keys.ros_topic`); compressed frames go to `<image topic>/compressed`, as `image_transport`
+names them.
 """
 
 from __future__ import annotations
@@ -44,6 +44,13 @@ class ChannelSpec:
         return self.message_encoding == "cdr"
 
 
+def topic_name(keys: Keys, key_name: str) -> str:
+    """The topic of a key: its ROS name for ROS-typed keys (`Keys.ros_topic`), `/<prefix>/<robot>/<suffix>` for
+    JSON keys (which have no ROS name)."""
+    spec = TOPICS[key_name]
+    return keys.ros_topic(key_name) if spec.ros_type is not None else f"/{keys.base}/{spec.suffix}"
+
+
 @cache
 def json_schema(key_name: str) -> str:
     """The JSON schema text of a JSON key's messages."""
@@ -59,19 +66,19 @@ def ros_channel(keys: Keys, key_name: str, ros_type: str | None = None, topic: s
     ros_type = ros_type or TOPICS[key_name].ros_type
     if ros_type is None:
         raise ValueError(f"key {key_name!r} carries JSON, not a ROS type")
-    return ChannelSpec(key_name, topic or keys.ros_topic(key_name), "cdr", ros_type, "ros2msg",
+    return ChannelSpec(key_name, topic or topic_name(keys, key_name), "cdr", ros_type, "ros2msg",
                        message_definition(ros_type))
 
 
 def json_channel(keys: Keys, key_name: str) -> ChannelSpec:
     """The `json` channel of a JSON key."""
-    return ChannelSpec(key_name, keys.ros_topic(key_name), "json", JSON_SCHEMA_NAMES[key_name], "jsonschema",
+    return ChannelSpec(key_name, topic_name(keys, key_name), "json", JSON_SCHEMA_NAMES[key_name], "jsonschema",
                        json_schema(key_name))
 
 
 def compressed_image_channel(keys: Keys) -> ChannelSpec:
     """`sensor_msgs/msg/CompressedImage` frames on `<camera image topic>/compressed`."""
-    return ros_channel(keys, "camera_image", COMPRESSED_IMAGE, keys.ros_topic("camera_image") + "/compressed")
+    return ros_channel(keys, "camera_image", COMPRESSED_IMAGE, topic_name(keys, "camera_image") + "/compressed")
 
 
 def run_channels(keys: Keys, frames: str = "raw") -> list[ChannelSpec]:

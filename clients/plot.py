@@ -1,4 +1,5 @@
-"""`ddvs plot`: the paper's figure types from a recording (matplotlib, Agg backend, PNG files).
+"""`ddvs plot`: the paper's figure types from a recording — a bag of `ddvs record` or an older JSON Lines
+directory (`clients.recording.load_recording`) — with matplotlib (Agg backend, PNG files).
 
 - `velocities.png`: camera velocities v (m/s) and ω (deg/s) in the camera frame against the image index (the top
   halves of the paper's Figs. 3, 4, 6, 7).
@@ -102,7 +103,7 @@ def plot_recording(recording: Recording, out_dir: str | Path, title: str = "") -
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", help="recording directory (written by `ddvs record`)")
+    parser.add_argument("recording", help="bag directory of `ddvs record`, or an older JSON Lines recording")
     parser.add_argument("--out", default=None, help="folder for the PNG files (default: <recording>/plots)")
     parser.add_argument("--title", default="", help="title written on every figure")
 

@@ -19,6 +19,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from clients.recording import RECORDED_KEYS, decode_record
+
 if TYPE_CHECKING:
     import zenoh
 
@@ -27,42 +29,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 FRAME_QUEUE = 64
-# stream name -> key name of `ddvs_service.protocol.TOPICS`
-RECORDED_KEYS = {
-    "status": "servo_status",
-    "state": "servo_state",
-    "twist": "servo_twist",
-    "joint_states": "arm_joint_states",
-    "ground_truth": "arm_ground_truth",
-    "camera_info": "camera_info",
-}
-
-
-def decode_record(stream: str, payload: bytes, recv_ns: int) -> dict[str, Any]:
-    """The JSON record of one payload of `stream` (raises `ValueError`, e.g. `ProtocolError`, on a bad payload)."""
-    from ddvs_service.protocol import decode_camera_info, decode_joint_state, decode_twist_stamped
-
-    if stream in ("status", "state", "ground_truth"):
-        msg = json.loads(payload)
-        if not isinstance(msg, dict):
-            raise ValueError(f"{stream} payload is a JSON {type(msg).__name__}; expected an object")
-        return {"recv_ns": recv_ns, "msg": msg}
-    if stream == "twist":
-        twist = decode_twist_stamped(payload)
-        return {"recv_ns": recv_ns, "stamp_ns": twist.header.stamp.to_ns(), "frame_id": twist.header.frame_id,
-                "twist": twist.vector.tolist()}
-    if stream == "joint_states":
-        joints = decode_joint_state(payload)
-        return {"recv_ns": recv_ns, "stamp_ns": joints.header.stamp.to_ns(), "name": joints.name,
-                "position": joints.position.tolist(), "velocity": joints.velocity.tolist()}
-    if stream == "camera_info":
-        info = decode_camera_info(payload)
-        return {"recv_ns": recv_ns, "stamp_ns": info.header.stamp.to_ns(), "width": info.width,
-                "height": info.height, "distortion_model": info.distortion_model, "d": info.d.tolist(),
-                "k": info.k.tolist()}
-    raise ValueError(f"no decoder for stream {stream!r}")
-
-
 class Recorder:
     """Subscribes the recorded keys on `session` and writes them with `writer` until `run`'s stop event is set."""
 

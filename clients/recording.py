@@ -1,5 +1,7 @@
-"""The recording format of `ddvs record` (documented in docs/recording.md): a directory of append-only JSON Lines
-streams, plus optional frames as PNG files.
+"""Recordings of servo runs as streams of JSON records (docs/recording.md): `load_recording` reads a bag of
+`ddvs record` (`clients/bag.py`) or the older JSON Lines directory, whose writer and reader are here.
+
+JSON Lines format: a directory of append-only JSON Lines streams, plus optional frames as PNG files.
 
 Crash safety: every record is one complete line written with a single `write` and flushed at once, so a killed
 recorder leaves every complete record readable; a torn last line (no trailing newline, or not valid JSON) is
@@ -18,11 +20,49 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from clients.bag import bag_messages, bag_meta, is_bag
+from clients.channels import topic_name
+from ddvs_service.protocol import Keys
+
 FORMAT_NAME = "ddvs-recording"
 FORMAT_VERSION = 1
 STREAMS = ("status", "state", "twist", "joint_states", "ground_truth", "camera_info", "frames")
 FRAMES_DIR = "frames"
 META_FILE = "meta.json"
+# stream name -> key name of `ddvs_service.protocol.TOPICS`
+RECORDED_KEYS = {
+    "status": "servo_status",
+    "state": "servo_state",
+    "twist": "servo_twist",
+    "joint_states": "arm_joint_states",
+    "ground_truth": "arm_ground_truth",
+    "camera_info": "camera_info",
+}
+
+
+def decode_record(stream: str, payload: bytes, recv_ns: int) -> dict[str, Any]:
+    """The JSON record of one payload of `stream` (raises `ValueError`, e.g. `ProtocolError`, on a bad payload)."""
+    from ddvs_service.protocol import decode_camera_info, decode_joint_state, decode_twist_stamped
+
+    if stream in ("status", "state", "ground_truth"):
+        msg = json.loads(payload)
+        if not isinstance(msg, dict):
+            raise ValueError(f"{stream} payload is a JSON {type(msg).__name__}; expected an object")
+        return {"recv_ns": recv_ns, "msg": msg}
+    if stream == "twist":
+        twist = decode_twist_stamped(payload)
+        return {"recv_ns": recv_ns, "stamp_ns": twist.header.stamp.to_ns(), "frame_id": twist.header.frame_id,
+                "twist": twist.vector.tolist()}
+    if stream == "joint_states":
+        joints = decode_joint_state(payload)
+        return {"recv_ns": recv_ns, "stamp_ns": joints.header.stamp.to_ns(), "name": joints.name,
+                "position": joints.position.tolist(), "velocity": joints.velocity.tolist()}
+    if stream == "camera_info":
+        info = decode_camera_info(payload)
+        return {"recv_ns": recv_ns, "stamp_ns": info.header.stamp.to_ns(), "width": info.width,
+                "height": info.height, "distortion_model": info.distortion_model, "d": info.d.tolist(),
+                "k": info.k.tolist()}
+    raise ValueError(f"no decoder for stream {stream!r}")
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -120,9 +160,27 @@ class Recording:
         return image
 
 
-def load_recording(directory: str | Path) -> Recording:
-    """Read a recording directory written by `RecordingWriter` (or a killed recorder)."""
+def load_bag(directory: str | Path) -> Recording:
+    """The records of a bag (complete or a killed recorder's), as `decode_record` makes them from each payload;
+    the frames stream stays empty (read images with `clients.bag.bag_messages`)."""
     directory = Path(directory)
+    meta = {"format": "rosbag2", **bag_meta(directory)}
+    keys = Keys(meta.get("prefix", "ddvs"), meta.get("robot", "robot0"))
+    stream_of = {topic_name(keys, key_name): stream for stream, key_name in RECORDED_KEYS.items()}
+    streams: dict[str, list[dict[str, Any]]] = {name: [] for name in STREAMS}
+    for message in bag_messages(directory):
+        stream = stream_of.get(message.topic)
+        if stream is not None:
+            streams[stream].append(decode_record(stream, message.data, message.log_time_ns))
+    return Recording(directory, meta, streams)
+
+
+def load_recording(directory: str | Path) -> Recording:
+    """Read a recording: a bag of `ddvs record` (`load_bag`) or a JSON Lines directory written by
+    `RecordingWriter` (or a killed recorder)."""
+    directory = Path(directory)
+    if is_bag(directory):
+        return load_bag(directory)
     meta_path = directory / META_FILE
     if not meta_path.exists():
         raise FileNotFoundError(f"{directory} is not a recording: it has no {META_FILE}")

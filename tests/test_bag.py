@@ -29,7 +29,7 @@ from clients.bag import (
     recover_bag,
     storage_files,
 )
-from clients.channels import compressed_image_channel, json_schema, run_channels
+from clients.channels import compressed_image_channel, json_schema, run_channels, topic_name
 from clients.compressed_image import compress_image
 from ddvs_service.protocol import (
     CameraInfo,
@@ -206,7 +206,7 @@ def test_killed_recorder_keeps_every_complete_chunk_and_recover_makes_the_bag_wh
             proc.kill()
         proc.wait(10)
     assert proc.returncode == -signal.SIGKILL
-    status_topic = keys.ros_topic("servo_status")
+    status_topic = topic_name(keys, "servo_status")
     read = [m for m in bag_messages(out) if m.topic == status_topic]
     published = len(sent["servo_status"])
     # every message read back is one that was sent, in order; at most the last flush period (0.5 s, 50 messages at
@@ -217,7 +217,7 @@ def test_killed_recorder_keeps_every_complete_chunk_and_recover_makes_the_bag_wh
     for path in storage_files(out):
         contents = FileContents({}, {}, {})
         assert sum(1 for _ in read_records(path, contents)) > 0 and not contents.complete  # no footer
-    frames = [m for m in bag_messages(out) if m.topic == keys.ros_topic("camera_image")]
+    frames = [m for m in bag_messages(out) if m.topic == topic_name(keys, "camera_image")]
     assert [m.data for m in frames] == sent["camera_image"][: len(frames)] and len(frames) >= published - 80
 
     kept = subprocess.run([sys.executable, "-m", "ddvs.cli", "record", str(out), "--recover"], cwd=ROOT,
@@ -227,7 +227,7 @@ def test_killed_recorder_keeps_every_complete_chunk_and_recover_makes_the_bag_wh
     with AnyReader([out]) as reader:
         n = {c.topic: c.msgcount for c in reader.connections}
         assert sum(1 for _ in reader.messages()) == sum(n.values())
-    assert n[keys.ros_topic("camera_image")] == len(frames)
+    assert n[topic_name(keys, "camera_image")] == len(frames)
 
 
 def _publish_run_killing(port: int, keys: Keys, proc: subprocess.Popen, kill_at: float) -> dict[str, list[bytes]]:

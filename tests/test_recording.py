@@ -1,4 +1,5 @@
-"""The JSON Lines recording format (old recordings: torn lines, frames), analysis and `ddvs plot`."""
+"""The JSON Lines recording format (old recordings: torn lines, frames), bags and JSON Lines loaded alike, analysis
+and `ddvs plot` of both."""
 
 from __future__ import annotations
 
@@ -9,10 +10,12 @@ import numpy as np
 import pytest
 
 from clients.analysis import images_to_convergence, summarize
+from clients.bag import BagWriter
+from clients.channels import run_channels, topic_name
 from clients.plot import plot_recording
-from clients.recording import RecordingWriter, load_recording, read_stream
+from clients.recording import RECORDED_KEYS, RecordingWriter, load_recording, read_stream
 from ddvs_service.lie import pose, so3_exp
-from ddvs_service.protocol import Counters, GroundTruth, Latency, Status, dump
+from ddvs_service.protocol import Counters, GroundTruth, Keys, Latency, Status, dump
 
 
 def _status(seq: int, state: str, norm: float, stamp_ns: int) -> Status:
@@ -47,19 +50,28 @@ def test_torn_last_line_is_skipped_and_a_torn_middle_line_is_an_error(tmp_path):
         read_stream(path)
 
 
-def _synthetic_run(directory: Path, converge_at: int) -> None:
-    """A run whose camera approaches the reference pose exponentially and converges at image `converge_at`."""
+def _synthetic_run(directory: Path, converge_at: int, bag: bool = False) -> None:
+    """A run whose camera approaches the reference pose exponentially and converges at image `converge_at`, as a
+    JSON Lines recording or (`bag`) as a bag of `ddvs record`."""
     T_world_ref = pose(so3_exp([0.1, 0.0, 0.0]), [0.5, 0.1, 0.4])
-    writer = RecordingWriter(directory, {"reference_pose": T_world_ref.reshape(-1).tolist(), "stop_threshold": 1e-3})
-    for k in range(3):
-        writer.write("status", {"recv_ns": k, "msg": json.loads(dump(_status(k, "READY", 0.0, k)))})
+    meta = {"reference_pose": T_world_ref.reshape(-1).tolist(), "stop_threshold": 1e-3}
+    messages: list[tuple[str, int, bytes]] = [("status", k, dump(_status(k, "READY", 0.0, k))) for k in range(3)]
     for i in range(converge_at + 5):
         decay = np.exp(-0.05 * i)
         state = "SERVOING" if i < converge_at else "CONVERGED"
-        writer.write("status", {"recv_ns": i, "msg": json.loads(dump(_status(i + 3, state, decay, 1000 + i)))})
+        messages.append(("status", i, dump(_status(i + 3, state, decay, 1000 + i))))
         T_ref_cam = pose(so3_exp([0.0, 0.0, 0.2 * decay]), [0.1 * decay, 0.0, 0.0])
         truth = GroundTruth(stamp_ns=1000 + i, camera_pose=(T_world_ref @ T_ref_cam).reshape(-1).tolist())
-        writer.write("ground_truth", {"recv_ns": i, "msg": json.loads(dump(truth))})
+        messages.append(("ground_truth", i, dump(truth)))
+    if bag:
+        keys = Keys()
+        writer = BagWriter(directory, run_channels(keys), {"prefix": keys.prefix, "robot": keys.robot, **meta})
+        for stream, t, payload in messages:
+            writer.write(topic_name(keys, RECORDED_KEYS[stream]), payload, t, t)
+    else:
+        writer = RecordingWriter(directory, meta)
+        for stream, t, payload in messages:
+            writer.write(stream, {"recv_ns": t, "msg": json.loads(payload)})
     writer.close()
 
 
@@ -75,8 +87,21 @@ def test_summary_counts_images_and_measures_the_pose_error(tmp_path):
     assert images_to_convergence(["SERVOING"] * 4) is None
 
 
-def test_plot_writes_the_paper_figure_types(tmp_path):
-    _synthetic_run(tmp_path / "run", converge_at=60)
-    files = plot_recording(load_recording(tmp_path / "run"), tmp_path / "plots", "synthetic")
+@pytest.mark.parametrize("bag", [False, True], ids=["json-lines", "bag"])
+def test_plot_writes_the_paper_figure_types(tmp_path, bag):
+    _synthetic_run(tmp_path / "run", converge_at=60, bag=bag)
+    recording = load_recording(tmp_path / "run")
+    files = plot_recording(recording, tmp_path / "plots", "synthetic")
     assert sorted(p.name for p in files) == ["error_norm.png", "pose_error.png", "trajectory.png", "velocities.png"]
     assert all(p.stat().st_size > 10_000 for p in files)
+    assert summarize(recording).images_to_convergence == 60
+
+
+def test_a_bag_and_json_lines_of_the_same_run_load_the_same_records(tmp_path):
+    _synthetic_run(tmp_path / "jsonl", converge_at=40)
+    _synthetic_run(tmp_path / "bag", converge_at=40, bag=True)
+    jsonl, bag = load_recording(tmp_path / "jsonl"), load_recording(tmp_path / "bag")
+    assert bag.meta["format"] == "rosbag2" and bag.meta["stop_threshold"] == jsonl.meta["stop_threshold"]
+    for stream in ("status", "ground_truth"):
+        assert bag[stream] == jsonl[stream]
+    assert summarize(bag) == summarize(jsonl)
