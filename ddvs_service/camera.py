@@ -48,7 +48,7 @@ class Intrinsics:
 
     @property
     def K_inv(self) -> NDArray[np.float64]:
-        return np.linalg.inv(self.K)
+        return np.asarray(np.linalg.inv(self.K), dtype=np.float64)
 
     def normalize(self, p: ArrayLike) -> NDArray[np.float64]:
         """Normalised homogeneous point `K⁻¹ [u, v, 1]` of a pixel (u, v)."""

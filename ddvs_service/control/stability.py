@@ -52,19 +52,23 @@ def check_configuration(
     lam = np.asarray(gains, dtype=np.float64).reshape(6)
     m = np.asarray(m_star, dtype=np.float64).reshape(3)
     c = np.asarray(c_star, dtype=np.float64).reshape(3)
-    metric = q_star is not None and z_star is not None
     if (q_star is None) != (z_star is None):
         raise ValueError("give both q_star and z_star (metric plane and depth of the control point) or neither")
+    # The metric plane (q*' in 1/m, z* in m) when both are known.
+    plane = None
+    if q_star is not None and z_star is not None:
+        plane = (np.asarray(q_star, dtype=np.float64).reshape(3), float(z_star))
     _require(bool(np.all(np.isfinite(lam)) and np.all(lam != 0.0)), f"gains must be finite and non-zero, got {lam}")
-    if metric:
-        z = float(z_star)
-        mq = float(m @ np.asarray(q_star, dtype=np.float64).reshape(3))
+    if plane is not None:
+        q, z = plane
+        mq = float(m @ q)
         _require(abs(mq - 2.0 / z) > 1e-9, f"(18): m*'ᵀq*' must differ from 2/z* = {2.0 / z:.6g}, got {mq:.6g}")
 
     if law in ("dvs", "dvs_reduced"):
         _require(bool(np.all(lam > 0.0)), f"(12): the DVS law is proven stable for positive gains only, got {lam}")
-        if metric:
-            _check_metric(L_prime_equilibrium(m, q_star, z_star), lam, m, q_star, z_star, "L'|₀ Λ (20)")
+        if plane is not None:
+            q, z = plane
+            _check_metric(L_prime_equilibrium(m, q, z), lam, m, q, z, "L'|₀ Λ (20)")
         return
 
     mc = float(m @ c)
@@ -83,25 +87,25 @@ def check_configuration(
         f"(32): the rotational block A_ωω has eigenvalues {np.linalg.eigvals(a_ww)} (need negative real parts)",
     )
     _require(np.sign(lam[0]) == np.sign(lam[1]), f"(26): λ1 and λ2 must share a sign, got {lam[0]:g}, {lam[1]:g}")
-    if not metric:
+    if plane is None:
         _require(
             lam[0] > 0.0,
             "(26): negative λ1, λ2 are stable only if 2/z* − m*'ᵀq*' < 0, which cannot be verified without the "
             "depth z_star and plane q_star; give them or use positive λ1, λ2 (stable under (34))",
         )
         return
-    a = 2.0 / float(z_star) - m @ np.asarray(q_star, dtype=np.float64).reshape(3)
+    q, z = plane
+    a = 2.0 / z - m @ q
     _require(
         np.sign(lam[0]) == np.sign(a),
         f"(26): sign(λ1) = sign(λ2) = sign(2/z* − m*'ᵀq*') = {np.sign(a):+.0f} required, got λ1={lam[0]:g}",
     )
-    _check_metric(L_bar_equilibrium(m, q_star, z_star, c), lam, m, q_star, z_star, "L̄|₀ Λ (19)")
+    _check_metric(L_bar_equilibrium(m, q, z, c), lam, m, q, z, "L̄|₀ Λ (19)")
 
 
-def _check_metric(L: F64, lam: F64, m: F64, q_star: ArrayLike, z_star: float, name: str) -> None:
-    """(34) with known `q*'`, `z*`, then the linearised closed loop must be Hurwitz."""
-    z = float(z_star)
-    mq = float(m @ np.asarray(q_star, dtype=np.float64).reshape(3))
+def _check_metric(L: F64, lam: F64, m: F64, q: F64, z: float, name: str) -> None:
+    """(34) with known `q*'` (1/m) and `z*` (m), then the linearised closed loop must be Hurwitz."""
+    mq = float(m @ q)
     if np.all(lam > 0.0):
         _require(z * mq < 2.0, f"(34): z* m*'ᵀq*' must be < 2 (control point near the plane), got {z * mq:.6g}")
     eig = np.linalg.eigvals(closed_loop_matrix(L, lam))

@@ -91,8 +91,9 @@ class _Level:
         frame[FRAME_NORM : FRAME_NORM + 3] = norm
         D = level_matrix(index)
         corners = np.array([[u0, u1, u1, u0], [v0, v0, v1, v1], [1.0, 1.0, 1.0, 1.0]])
-        return _Level(index, D, np.linalg.inv(D), N, np.linalg.inv(N), corners, float(max(u1 - u0, v1 - v0)),
-                      w * h, frame)
+        D_inv = np.asarray(np.linalg.inv(D), dtype=np.float64)
+        N_inv = np.asarray(np.linalg.inv(N), dtype=np.float64)
+        return _Level(index, D, D_inv, N, N_inv, corners, float(max(u1 - u0, v1 - v0)), w * h, frame)
 
 
 def retraction(x: F64) -> F64:
@@ -120,7 +121,7 @@ def _degenerate(H: F64) -> NDArray[np.bool_]:
 def _solve(H: F64, b: F64) -> F64:
     """Solutions of the stack of systems `H x = b` ((K, n, n), (K, n)); NaN rows for the singular ones."""
     try:
-        return np.linalg.solve(H, b[:, :, None])[:, :, 0]
+        return np.asarray(np.linalg.solve(H, b[:, :, None])[:, :, 0], dtype=np.float64)
     except np.linalg.LinAlgError:  # one singular matrix fails the whole stack: solve them one by one
         out = np.full(b.shape, np.nan)
         for k in range(len(H)):
