@@ -134,7 +134,8 @@ class ArmKinematics:
         at 0.5 rad and clips to the position limits. Raises when the residual (metres + radians) stays above `tol`.
         """
         target = pin.SE3(np.asarray(T_base_cam, dtype=np.float64))
-        q = np.clip(np.asarray(q0, dtype=np.float64).copy(), self.lower, self.upper)
+        start = np.asarray(q0, dtype=np.float64)
+        q = np.clip(start, self.lower, self.upper)
         err = np.inf
         for _ in range(max_iterations):
             current = pin.SE3(self.camera_pose(q))
@@ -149,5 +150,5 @@ class ArmKinematics:
             q = np.clip(q + step, self.lower, self.upper)
         raise RuntimeError(
             f"inverse kinematics did not reach the camera pose (residual {err:.2e} > {tol:.0e} after {max_iterations}"
-            f" iterations from q0={np.round(q0, 3).tolist()}): pose out of reach or joint limits in the way"
+            f" iterations from q0={np.round(start, 3).tolist()}): pose out of reach or joint limits in the way"
         )

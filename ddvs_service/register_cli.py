@@ -24,6 +24,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the modules themselves are imported by `run`, so that `ddvs --help` stays light
+    from numpy.typing import NDArray
+
+    from ddvs_service.registration.general import GeneralResult
+    from ddvs_service.registration.result import RegistrationResult
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
             images.append(to_grey(img))
         start = time.perf_counter()  # the registration's wall time includes a global initialisation
         extra: dict[str, object] = {}
+        G0: NDArray[np.float64] | None
         if args.init == "global":
             from ddvs_service.registration.global_init import register_global
 
@@ -106,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
         if defocus is None and args.model == "general":
             raise ValueError("--defocus search estimates the defocus with the planar model; give a radius with "
                              "--model general")
+        result: RegistrationResult | GeneralResult
         if defocus is None:
             from ddvs_service.registration.defocus import register_defocus
 
