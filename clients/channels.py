@@ -25,6 +25,9 @@ JSON_SCHEMA_NAMES = {"servo_status": "ddvs/Status", "servo_state": "ddvs/StateSn
                      "arm_ground_truth": "ddvs/GroundTruth", "servo_config": "ddvs/ServiceConfig"}
 ROS_KEYS = ("camera_image", "camera_info", "servo_twist", "arm_joint_states", "servo_reference")
 JSON_KEYS = ("servo_status", "servo_state", "arm_ground_truth", "servo_config")
+POSE_SUFFIX = "arm/camera_pose"
+"""The live view's ground-truth camera pose (`foxglove.FrameTransform` `world → camera`) is `/<prefix>/<robot>/`
+this."""
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,11 @@ def topic_name(keys: Keys, key_name: str) -> str:
     JSON keys (which have no ROS name)."""
     spec = TOPICS[key_name]
     return keys.ros_topic(key_name) if spec.ros_type is not None else f"/{keys.base}/{spec.suffix}"
+
+
+def pose_topic(keys: Keys) -> str:
+    """The topic of the live view's ground-truth camera pose."""
+    return f"/{keys.base}/{POSE_SUFFIX}"
 
 
 @cache

@@ -1,8 +1,11 @@
-"""`ddvs monitor`: live terminal view of one servo (plain ANSI redraw), or one JSON snapshot with `--once`.
+"""`ddvs monitor`: live terminal view of one servo (plain ANSI redraw), one JSON snapshot with `--once`, or a live
+Foxglove view with `--foxglove` (`clients/foxglove_live.py`).
 
 Shown: the servo state (from `servo/status`, or `servo/state` before any status), the control error vector ε̄ and its
 norm (eq. 16, or 13 for DVS), the twist (m/s, rad/s, camera frame), arrival rates over the last `--window` seconds
-of camera frames, twists and status messages (Hz), the service's per-frame latency breakdown (ms) and counters.
+of camera frames, twists and status messages (Hz), the service's per-frame latency breakdown (ms) and counters, and
+the secured router's audit of this robot (`<prefix>/<robot>/router/audit`, docs/security.md): messages denied per
+identity, sessions without a role, refused TLS handshakes.
 """
 
 from __future__ import annotations
@@ -36,10 +39,14 @@ class Monitor:
         self._arrivals: dict[str, collections.deque[float]] = {name: collections.deque() for name in RATE_STREAMS}
         self._status: dict[str, Any] | None = None
         self._state: dict[str, Any] | None = None
+        self._audit: dict[str, Any] | None = None
         self.status_received = threading.Event()
         self._subscribers = [session.declare_subscriber(keys.key(key), self._on_arrival(name))
                              for name, key in RATE_STREAMS.items()]
         self._subscribers.append(session.declare_subscriber(keys.servo_state, self._on_state))
+        from ddvs_service.protocol.audit import audit_key
+
+        self._subscribers.append(session.declare_subscriber(audit_key(keys.base), self._on_audit))
 
     def _on_arrival(self, name: str):
         def callback(sample: zenoh.Sample) -> None:
@@ -65,6 +72,14 @@ class Monitor:
         with self._lock:
             self._state = state
 
+    def _on_audit(self, sample: zenoh.Sample) -> None:
+        try:
+            audit = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        with self._lock:
+            self._audit = audit
+
     def close(self) -> None:
         for subscriber in self._subscribers:
             subscriber.undeclare()
@@ -72,7 +87,7 @@ class Monitor:
 
     def snapshot(self) -> dict[str, Any]:
         """JSON-ready view: state, status `seq`, error, twist, rates (Hz over the window), latency (ms), counters,
-        message."""
+        message, and the router's audit summary (`audit`; None without a secured router)."""
         now = time.monotonic()
         with self._lock:
             rates = {}
@@ -80,10 +95,10 @@ class Monitor:
                 while arrivals and arrivals[0] < now - self.window:
                     arrivals.popleft()
                 rates[name] = round(len(arrivals) / self.window, 2)
-            status, state = self._status, self._state
+            status, state, audit = self._status, self._state, self._audit
         snap: dict[str, Any] = {"state": None, "seq": None, "has_reference": None, "error_norm": None, "error": None,
                                 "twist": None, "rates_hz": rates, "latency_ms": None, "counters": None,
-                                "message": ""}
+                                "message": "", "audit": audit}
         if state is not None:
             snap.update(state=state.get("state"), has_reference=state.get("has_reference"),
                         message=state.get("message", ""))
@@ -97,6 +112,17 @@ class Monitor:
 
 def _vector(values: list[float] | None, digits: int = 5) -> str:
     return "—" if values is None else "[" + ", ".join(f"{v:+.{digits}f}" for v in values) + "]"
+
+
+def _audit_line(audit: dict[str, Any] | None) -> str:
+    if audit is None:
+        return "— (no audit from a secured router)"
+
+    def counts(values: dict[str, int]) -> str:
+        return ", ".join(f"{who} {n}" for who, n in sorted(values.items())) or "none"
+
+    return (f"denied {counts(audit.get('denied', {}))}   without a role {counts(audit.get('no_role', {}))}   "
+            f"TLS refused {audit.get('tls_refused', 0)}")
 
 
 def render(snap: dict[str, Any], title: str) -> str:
@@ -118,6 +144,7 @@ def render(snap: dict[str, Any], title: str) -> str:
         "latency ms   " + ("—" if not latency else "   ".join(f"{k} {v:.2f}" for k, v in latency.items())),
         "counters     " + ("—" if not counters else "   ".join(f"{k} {v}" for k, v in counters.items())),
         f"message      {snap['message'] or ''}",
+        f"security     {_audit_line(snap['audit'])}",
     ]
     return "\n".join(lines)
 
@@ -125,6 +152,10 @@ def render(snap: dict[str, Any], title: str) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
 
+    parser.add_argument("--foxglove", action="store_true",
+                        help="serve a live Foxglove view (WebSocket, foxglove.websocket.v1) instead of the terminal's")
+    parser.add_argument("--host", default="127.0.0.1", help="--foxglove: address to listen on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8765, help="--foxglove: port (default 8765)")
     parser.add_argument("--once", action="store_true",
                         help="wait for a status, measure rates over --window, print one JSON snapshot and exit")
     parser.add_argument("--window", type=float, default=2.0, help="seconds over which rates are counted (default 2)")
@@ -140,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
 
     keys = Keys(args.prefix, args.robot)
+    if args.foxglove:
+        return _serve_foxglove(args, keys)
     with open_session(session_config_from_args(args)) as session:
         monitor = Monitor(session, keys, args.window)
         try:
@@ -158,3 +191,17 @@ def run(args: argparse.Namespace) -> int:
             return 0
         finally:
             monitor.close()
+
+
+def _serve_foxglove(args: argparse.Namespace, keys: Keys) -> int:
+    import signal
+
+    from clients.foxglove_live import serve
+    from ddvs_service.protocol import open_session, session_config_from_args
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with open_session(session_config_from_args(args)) as session:
+        serve(session, keys, args.host, args.port, stop)
+    return 0

@@ -19,6 +19,7 @@ from conftest import free_port
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from run_messages import frame, run_payloads
 
 from clients.bag import (
     BagWriter,
@@ -32,24 +33,15 @@ from clients.bag import (
 from clients.channels import compressed_image_channel, json_schema, run_channels, topic_name
 from clients.compressed_image import compress_image
 from ddvs_service.protocol import (
-    CameraInfo,
-    Counters,
-    GroundTruth,
     Header,
-    JointState,
     Keys,
-    Latency,
     SessionConfig,
     StateSnapshot,
     Status,
     Time,
-    TwistStamped,
     declare_publisher,
     dump,
-    encode_camera_info,
     encode_image,
-    encode_joint_state,
-    encode_twist_stamped,
     image_from_array,
     open_session,
     parse_message,
@@ -68,33 +60,8 @@ def test_message_definitions_are_the_ros_types(ros_type):
         assert fields == JAZZY.fielddefs[name], name
 
 
-def _status(seq: int) -> Status:
-    return Status(robot="r", state="SERVOING", frame_stamp_ns=seq, seq=seq, error=[1.0 / (seq + 1), 0, 0, 0, 0, 0],
-                  error_norm=1.0 / (seq + 1), iterations=2, residual_rms=1.5, inlier_ratio=0.9, twist=[0.01] * 6,
-                  latency_ms=Latency(decode=0.1, registration=1.0, control=0.1, publish=0.1, total=1.3),
-                  counters=Counters(frames=seq, dropped=0, rejected=0))
-
-
-def _frame(seq: int) -> np.ndarray:
-    return ((np.arange(48 * 64).reshape(48, 64) + seq) % 256).astype(np.uint8)
-
-
-def _run_payloads(seq: int) -> dict[str, bytes]:
-    """One payload of every recorded key, numbered `seq` (stamps in ns = seq)."""
-    header = Header(Time.from_ns(1_000_000_000 + seq), "camera")
-    return {
-        "camera_image": encode_image(image_from_array(_frame(seq), "mono8", header)),
-        "camera_info": encode_camera_info(CameraInfo(header, 48, 64, k=[50, 0, 31.5, 0, 50, 23.5, 0, 0, 1])),
-        "servo_twist": encode_twist_stamped(TwistStamped(header, [seq, 0, 0], [0, 0, 0.1])),
-        "arm_joint_states": encode_joint_state(JointState(Header(header.stamp, "base"), ["j1", "j2"], [seq, 1.0],
-                                                          [0.0, 0.0])),
-        "servo_status": dump(_status(seq)),
-        "arm_ground_truth": dump(GroundTruth(stamp_ns=seq, camera_pose=np.eye(4).reshape(-1).tolist())),
-    }
-
-
 ONCE = {
-    "servo_reference": lambda: encode_image(image_from_array(_frame(0), "mono8")),
+    "servo_reference": lambda: encode_image(image_from_array(frame(0), "mono8")),
     "servo_state": lambda: dump(StateSnapshot(robot="r", state="READY", has_reference=True, message="set")),
     "servo_config": lambda: json.dumps({"robot": "r", "control": {"law": "ddvs"}}).encode(),
 }
@@ -114,7 +81,7 @@ def _start_recorder(out: Path, port: int, robot: str, *extra: str) -> subprocess
 
 def _publish_run(port: int, keys: Keys, count: int, hz: float, stop_at: float | None = None) -> dict[str, list[bytes]]:
     """Publish `count` rounds of every key at `hz` (the ONCE keys first); returns what was sent per key."""
-    sent: dict[str, list[bytes]] = {name: [] for name in (*ONCE, *_run_payloads(0))}
+    sent: dict[str, list[bytes]] = {name: [] for name in (*ONCE, *run_payloads(0))}
     with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
         pubs = {name: declare_publisher(session, keys, name) for name in sent}
         time.sleep(1.0)  # the recorder's subscriptions reach this session
@@ -122,7 +89,7 @@ def _publish_run(port: int, keys: Keys, count: int, hz: float, stop_at: float | 
             sent[name].append(make())
             pubs[name].put(sent[name][-1])
         for seq in range(count):
-            for name, payload in _run_payloads(seq).items():
+            for name, payload in run_payloads(seq).items():
                 pubs[name].put(payload)
                 sent[name].append(payload)
             time.sleep(1.0 / hz)
@@ -158,7 +125,7 @@ def test_recorded_run_is_read_by_rosbags_and_the_mcap_reader(tmp_path):
         _assert_in_order(raws, sent[name], name)
         assert metadata_counts[topic_of[name]] == len(raws)
     for image, _ in decoded[topic_of["camera_image"]]:
-        np.testing.assert_array_equal(image.data.reshape(48, 64), _frame(image.header.stamp.nanosec))
+        np.testing.assert_array_equal(image.data.reshape(48, 64), frame(image.header.stamp.nanosec))
     twists = [msg.twist.linear.x for msg, _ in decoded[topic_of["servo_twist"]]]
     assert twists == sorted(twists)
     assert decoded[topic_of["camera_info"]][0][0].k[2] == 31.5
@@ -234,11 +201,11 @@ def _publish_run_killing(port: int, keys: Keys, proc: subprocess.Popen, kill_at:
     """Publish at 100 Hz and `kill -9` the recorder at `kill_at` while publishing; what was sent before the kill."""
     sent: dict[str, list[bytes]] = {}
     with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
-        pubs = {name: declare_publisher(session, keys, name) for name in _run_payloads(0)}
+        pubs = {name: declare_publisher(session, keys, name) for name in run_payloads(0)}
         time.sleep(1.0)
         seq = 0
         while time.monotonic() < kill_at:
-            for name, payload in _run_payloads(seq).items():
+            for name, payload in run_payloads(seq).items():
                 pubs[name].put(payload)
                 sent.setdefault(name, []).append(payload)
             seq += 1
@@ -257,7 +224,7 @@ def test_a_file_cut_anywhere_reads_back_whole_chunks(tmp_path):
     for c in range(chunks):
         for i in range(per_chunk):
             seq = c * per_chunk + i
-            writer.write(specs["servo_twist"].topic, _run_payloads(seq)["servo_twist"], seq, seq)
+            writer.write(specs["servo_twist"].topic, run_payloads(seq)["servo_twist"], seq, seq)
         writer.flush()
     path = storage_files(tmp_path / "bag")[0]
     whole = path.read_bytes()  # a killed recorder's file: complete chunks, no summary, no footer
@@ -280,7 +247,7 @@ def test_a_file_cut_anywhere_reads_back_whole_chunks(tmp_path):
 
 def test_compressed_frames_decode_with_rosbags(tmp_path):
     keys = Keys("ddvs", "png")
-    image = image_from_array(_frame(3), "mono8", Header(Time.from_ns(5), "camera"))
+    image = image_from_array(frame(3), "mono8", Header(Time.from_ns(5), "camera"))
     spec = compressed_image_channel(keys)
     writer = BagWriter(tmp_path / "bag", [spec])
     writer.write(spec.topic, compress_image(image, "png"), 10, 5)
@@ -289,5 +256,5 @@ def test_compressed_frames_decode_with_rosbags(tmp_path):
     with AnyReader([tmp_path / "bag"]) as reader:
         msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()]
     assert [m.format for m in msgs] == ["png", "jpeg"] and msgs[0].header.stamp.nanosec == 5
-    np.testing.assert_array_equal(cv2.imdecode(msgs[0].data, cv2.IMREAD_UNCHANGED), _frame(3))
-    assert np.abs(cv2.imdecode(msgs[1].data, cv2.IMREAD_UNCHANGED).astype(int) - _frame(3)).mean() < 3
+    np.testing.assert_array_equal(cv2.imdecode(msgs[0].data, cv2.IMREAD_UNCHANGED), frame(3))
+    assert np.abs(cv2.imdecode(msgs[1].data, cv2.IMREAD_UNCHANGED).astype(int) - frame(3)).mean() < 3
