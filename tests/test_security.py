@@ -23,6 +23,7 @@ import zenoh
 from conftest import free_port
 
 from ddvs_service.protocol import TOPICS, Keys, SessionConfig
+from ddvs_service.protocol.audit import audit_key
 from ddvs_service.protocol.security import (
     ROLE_GRANTS,
     ROLES,
@@ -402,7 +403,7 @@ def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
     all_keys = {KEYS.key(name) for name in ("camera_image", "camera_info", "servo_twist", "servo_status",
                                             "servo_config", "servo_state", "servo_reference", "servo_command",
                                             "arm_joint_states", "arm_joint_velocity", "arm_ground_truth",
-                                            "liveliness")}
+                                            "liveliness")} | {audit_key(KEYS.base)}
     writers: dict[tuple[str, str], set[str]] = {}
     for rule in acl["rules"]:
         assert rule["permission"] == "allow" and set(rule["key_exprs"]) <= all_keys
@@ -416,6 +417,7 @@ def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
     assert writers[("put", KEYS.camera_image)] == writers[("put", KEYS.arm_joint_states)] == {"plant"}
     assert writers[("query", KEYS.servo_command)] == {"operator"}
     assert writers[("declare_queryable", KEYS.servo_command)] == {"service"}
+    assert ("put", audit_key(KEYS.base)) not in writers  # only the router itself publishes its audit
     assert not any("observer" in roles for (message, _), roles in writers.items()
                    if message not in ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"))
     other = Keys("ddvs", "other_robot")

@@ -7,8 +7,8 @@ Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everythi
 | service | twist, status, config, state, reference | camera image + info | serves `servo/command`, holds token |
 | plant | camera image + info, joint states, ground truth | joint velocities, servo twist (free flyer) | |
 | bridge | joint velocities | servo twist, joint states | watches `servo/alive` token |
-| operator | | every topic | queries `servo/command`, watches `servo/alive` |
-| observer | | every topic (frames only if allowed) | watches `servo/alive` |
+| operator | | every topic, the router's audit | queries `servo/command`, watches `servo/alive` |
+| observer | | every topic (frames only if allowed), the router's audit | watches `servo/alive` |
 
 The rules are generated from `Keys`/`TOPICS` (`access_control`) so that they follow the key table; each role is
 mapped to a Zenoh identity (`Identity`: TLS certificate common names and/or usernames of user/password
@@ -31,11 +31,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ddvs_service.protocol.audit import audit_key
 from ddvs_service.protocol.keys import TOPICS, Keys
 from ddvs_service.protocol.session import SessionConfig
 
 ROLES = ("service", "plant", "bridge", "operator", "observer")
 FRAME_TOPICS = ("camera_image", "servo_reference")
+AUDIT_READERS = ("operator", "observer")  # may read the router's audit summary (`audit.audit_key`)
 SECURE_PROTOCOLS = ("tls", "quic")
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
 
@@ -108,6 +110,8 @@ def _role_rules(role: str, grants: Grants, keys: Keys) -> list[dict[str, Any]]:
     """The allow rules of one role (ids `<role>/<what>`), flows seen from the router."""
     k = keys.key
     pub, sub = [k(n) for n in grants.publish], [k(n) for n in grants.subscribe]
+    if role in AUDIT_READERS:
+        sub.append(audit_key(keys.base))  # published by the router itself (`ddvs router`), so no role writes it
     serve, query = [k(n) for n in grants.serve], [k(n) for n in grants.query]
     tokens, watch = [k(n) for n in grants.tokens], [k(n) for n in grants.watch]
     candidates = [
