@@ -30,9 +30,11 @@ from ddvs_service.protocol.security import (
     Identity,
     TlsFiles,
     certificate_identities,
+    check_robot_covered,
     client_config,
     password_identities,
     render_json5,
+    robots_granted,
     router_config,
     warn_if_insecure,
     write_configs,
@@ -453,6 +455,34 @@ def test_example_configurations_are_generated_and_load_in_zenoh(tmp_path: Path) 
             "`ddvs security init --robot robot0 --certs-dir certs --configs-only configs/security`")
         zenoh.Config.from_file(str(path))  # valid JSON5 with keys Zenoh knows
     assert render_json5({"mode": "client"}, "a\nb").startswith("// a\n// b\n{")
+
+
+def test_shipped_examples_agree_on_the_robot() -> None:
+    """Every shipped service configuration names a robot the shipped router rules cover, and the one the clients use
+    by default (`Keys()`): run as shipped, the operator's commands reach the service."""
+    router = REPO / "configs" / "security" / "router-mtls.json5"
+    granted = robots_granted(json.loads(zenoh.Config.from_file(str(router)).get_json("access_control")))
+    assert granted == {Keys().base}
+    for path in sorted((REPO / "configs" / "serve").glob("*.json")):
+        config = json.loads(path.read_text(encoding="utf-8"))
+        robot = Keys(config.get("prefix", "ddvs"), config.get("robot", Keys().robot))
+        assert robot.base in granted, f"{path.name}: robot {robot.base} is not covered by {router.name}"
+        check_robot_covered(robot, REPO / "configs" / "security" / "service-mtls.json5")
+
+
+def test_a_robot_not_covered_by_the_router_beside_the_node_config_is_refused(tmp_path: Path) -> None:
+    write_configs(tmp_path, Keys("ddvs", "ur5"), "certs", "tls/localhost:7447", roles=["service", "operator"])
+    service_file = tmp_path / "service-mtls.json5"
+    check_robot_covered(Keys("ddvs", "ur5"), service_file)  # covered: nothing to say
+    with pytest.raises(ValueError, match=r"robot 'ddvs/robot0' is not covered .* grants \['ddvs/ur5'\].*"
+                                         r"ddvs security init --robot robot0"):
+        check_robot_covered(Keys("ddvs", "robot0"), service_file)
+    lone = tmp_path / "alone" / "service.json5"
+    lone.parent.mkdir()
+    lone.write_text(service_file.read_text())
+    check_robot_covered(Keys("ddvs", "robot0"), lone)  # no router configuration in sight: nothing to check
+    check_robot_covered(Keys("ddvs", "robot0"), None)
+    assert robots_granted({"enabled": False, "rules": []}) == set()
 
 
 # --- warnings -------------------------------------------------------------------------------------------------------
