@@ -30,7 +30,9 @@ def test_full_cycle_with_hysteresis() -> None:
     assert sm.on_frame(FrameOutcome(True, 3e-3)) == ServoState.CONVERGED  # inside the hysteresis band
     assert sm.on_frame(FrameOutcome(True, 6e-3)) == ServoState.SERVOING
     assert sm.on_frame(FrameOutcome(False, np.nan)) == ServoState.LOST and not sm.moves
-    assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.SERVOING  # re-acquired
+    for _ in range(sm.confirm_frames - 1):  # re-acquired: held still until the fit is confirmed
+        assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.LOST and not sm.moves
+    assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.SERVOING
     sm.stop()
     assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.STOPPED
     sm.reset()

@@ -39,7 +39,9 @@ class Estimate:
 
 
 class PlanarEstimator:
-    """Planar tracker + direct global initialiser (the planar path of the issue, `e = 0`, `ρ* = 0`)."""
+    """Planar tracker + direct global initialiser (the planar path of the issue, `e = 0`, `ρ* = 0`). A frame that
+    needs re-acquisition (the first after a reference, any after an untracked one) is tracked only from the global
+    initialiser's estimate: when that fails the frame is untracked, never tracked on from the stale estimate."""
 
     def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings) -> None:
         self.reference, self.roi, self.settings = reference, roi, settings
@@ -67,8 +69,9 @@ class PlanarEstimator:
             if init.status == "OK" and init.G is not None:
                 self._tracker.reset(init.G)
                 message = "global initialisation: ok" + (" (contradicted the tracking estimate)" if contradicts else "")
-            else:
-                message = f"global initialisation: LOST ({init.reason})"
+            else:  # never track on from the stale estimate: it is what was lost
+                return Estimate(False, self._tracker.G, np.zeros(3), 0.0, 0, 0.0, 0.0,
+                                f"global initialisation: LOST ({init.reason}); the last estimate is not used")
         result = self._tracker.track(grey)
         tracked = result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
         self._needs_init = not tracked

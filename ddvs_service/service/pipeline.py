@@ -1,8 +1,10 @@
 """One servo step per frame, without I/O: register against the reference, compute the law, update the state.
 
 Data flow: grey frame → estimator (planar or general, warm-started; global initialisation on the first frame after a
-reference and while LOST) → control error and twist from `G`, `e`, `ρ*` of the control point → state machine. The
-twist is in the current camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOING.
+reference and while LOST) → control error and twist from `G`, `e`, `ρ*` of the control point → error guard (a tracked
+frame whose error jumped from the last trusted one is a suspect fit: treated as lost, and the estimator re-acquires
+on the next frame; `guard.ErrorGuard`) → state machine. The twist is in the current camera frame (OpenCV axes, m/s
+and rad/s) and is zero unless the state is SERVOING.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from ddvs_service.control.law import ControlLaw, ControlOutput
 from ddvs_service.registration.images import to_grey
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.estimators import Estimate, GeneralEstimator, PlanarEstimator
+from ddvs_service.service.guard import ErrorGuard
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine
 
 Roi = tuple[int, int, int, int]
@@ -69,6 +72,8 @@ class ServoPipeline:
         self.rho_coeffs: list[float] = []
         self._estimator: PlanarEstimator | GeneralEstimator | None = None
         self._law: ControlLaw | None = None
+        self.guard = ErrorGuard()
+        self._suspect = False  # the last frame's fit was suspect: re-acquire on the next one
         if intrinsics is not None:
             self._law = ControlLaw(config.control.law_config(), intrinsics)
 
@@ -123,6 +128,8 @@ class ServoPipeline:
         else:
             estimator = PlanarEstimator(grey, roi, settings)
         self.reference, self.roi, self._estimator = grey, roi, estimator
+        self.guard.reset()
+        self._suspect = False
         return estimator
 
     def clear_reference(self) -> None:
@@ -150,13 +157,18 @@ class ServoPipeline:
             raise ValueError(f"frame is {grey.shape[1]}×{grey.shape[0]}; the reference is "
                              f"{self.reference.shape[1]}×{self.reference.shape[0]}")
         t0 = time.perf_counter()
-        if self.machine.state == ServoState.LOST:
+        if self._suspect:
             self._estimator.lose()
         est = self._estimator.estimate(grey, self.control_px)
         if est.rho_coeffs:
             self.rho_coeffs = est.rho_coeffs
         t1 = time.perf_counter()
         out = self._control(est) if est.tracked else None
+        suspect = "" if out is None else self.guard.check(out.error)
+        self._suspect = bool(suspect)
+        if suspect:
+            out = None
+            est.message = f"{est.message}; {suspect}".strip("; ")
         error = out.error if out is not None else ZERO6
         norm = out.error_norm if out is not None else float("nan")
         state = self.machine.on_frame(FrameOutcome(out is not None, norm))

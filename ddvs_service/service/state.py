@@ -2,7 +2,9 @@
 
 States: IDLE (no reference) → READY (reference set, not servoing) → SERVOING → CONVERGED (zero twist; resumes
 SERVOING when the error grows past `resume_threshold`, a hysteresis above the stop threshold) and LOST (registration
-failed or quality below threshold: zero twist, keeps trying to re-acquire) and STOPPED (an operator stopped it).
+failed, quality below threshold or a suspect fit: zero twist, keeps trying to re-acquire; back to SERVOING only after
+`confirm_frames` consecutive tracked frames, so one re-acquired fit never moves the camera) and STOPPED (an operator
+stopped it).
 Only SERVOING publishes a non-zero twist.
 """
 
@@ -39,14 +41,17 @@ class StateMachine:
 
     `stop_threshold` is the error norm below which the servo is CONVERGED, once it stayed below for
     `converge_frames` consecutive frames (one noisy dip does not stop the arm); `resume_threshold` (> stop) is the norm
-    above which a CONVERGED servo resumes. LOST and CONVERGED servos go back to SERVOING by themselves.
+    above which a CONVERGED servo resumes. LOST and CONVERGED servos go back to SERVOING by themselves, a LOST one
+    after `confirm_frames` consecutive tracked frames.
     """
 
     stop_threshold: float
     resume_threshold: float
     converge_frames: int = 1
+    confirm_frames: int = 3
     state: ServoState = ServoState.IDLE
     _below: int = 0
+    _tracked: int = 0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.stop_threshold < self.resume_threshold:
@@ -55,6 +60,8 @@ class StateMachine:
             )
         if self.converge_frames < 1:
             raise ValueError(f"converge_frames must be ≥ 1, got {self.converge_frames}")
+        if self.confirm_frames < 1:
+            raise ValueError(f"confirm_frames must be ≥ 1, got {self.confirm_frames}")
 
     # --- commands ---------------------------------------------------------------------------------------------
     def reference_set(self) -> ServoState:
@@ -91,8 +98,11 @@ class StateMachine:
             return self.state
         below = outcome.tracked and outcome.error_norm < self.stop_threshold
         self._below = self._below + 1 if below else 0
+        self._tracked = self._tracked + 1 if outcome.tracked else 0
         if not outcome.tracked:
             self.state = ServoState.LOST
+        elif self.state == ServoState.LOST and self._tracked < self.confirm_frames:
+            pass  # re-acquired: hold still until the fit is confirmed
         elif self.state == ServoState.CONVERGED:
             if outcome.error_norm > self.resume_threshold:
                 self.state = ServoState.SERVOING
