@@ -74,6 +74,7 @@ class Operator:
         self.keys = Keys("ddvs", "t0")
         self.session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
         self.twists: list[np.ndarray] = []
+        self.twist_stamps: list[int] = []  # header stamp of each twist (ns): a frame's, or the time of a zero twist
         self.statuses: list[dict] = []
         self._subs = [
             self.session.declare_subscriber(self.keys.key("servo_twist"), self._on_twist),
@@ -83,7 +84,9 @@ class Operator:
         self._stamp = 0
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
-        self.twists.append(decode_twist_stamped(sample.payload.to_bytes()).vector)
+        twist = decode_twist_stamped(sample.payload.to_bytes())
+        self.twist_stamps.append(twist.header.stamp.to_ns())
+        self.twists.append(twist.vector)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         self.statuses.append(json.loads(sample.payload.to_bytes()))
@@ -121,12 +124,12 @@ class Operator:
 class Service:
     """`ddvs serve` in a subprocess with a given configuration; `stop()` sends SIGTERM and returns the exit code."""
 
-    def __init__(self, config: ServiceConfig, tmp_path: Path) -> None:
+    def __init__(self, config: ServiceConfig, tmp_path: Path, *args: str) -> None:
         cfg_file = tmp_path / "serve.json"
         cfg_file.write_text(config.model_dump_json())
         env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
         self.proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "ddvs.cli", "serve",
-                                      "--config", str(cfg_file)], stderr=subprocess.PIPE, text=True, env=env)
+                                      "--config", str(cfg_file), *args], stderr=subprocess.PIPE, text=True, env=env)
 
     def wait_ready(self, op: Operator, timeout: float = 60.0) -> None:
         deadline = time.monotonic() + timeout
@@ -153,8 +156,10 @@ class Service:
 
 
 @contextmanager
-def running_service(config: ServiceConfig, tmp_path: Path, port: int) -> Iterator[tuple[Service, Operator]]:
-    service = Service(config, tmp_path)
+def running_service(config: ServiceConfig, tmp_path: Path, port: int,
+                    *args: str) -> Iterator[tuple[Service, Operator]]:
+    """`ddvs serve --config … *args` and an operator connected to it; the service must exit 0 at the end."""
+    service = Service(config, tmp_path, *args)
     op = Operator(port)
     try:
         service.wait_ready(op)
@@ -346,8 +351,9 @@ def test_inbox_keeps_the_newest_frame_queues_commands_and_wakes_the_loop() -> No
     inbox = Inbox(max_queries=2)
     inbox.on_frame("frame 1")  # the inbox stores whatever the callback hands it
     inbox.on_frame("frame 2")
-    assert inbox.take_frame() == "frame 2" and inbox.take_frame() is None
-    assert inbox.frames_received == 2
+    frame = inbox.take_frame()
+    assert frame is not None and frame.sample == "frame 2" and frame.index == 2 and inbox.take_frame() is None
+    assert inbox.frames_received == 2 and inbox.frames_superseded == 1 and inbox.last_arrival_t == frame.t
     for q in ("q1", "q2", "q3"):
         inbox.on_query(q)
     assert [inbox.take_query(), inbox.take_query(), inbox.take_query()] == ["q2", "q3", None]
@@ -360,4 +366,6 @@ def test_inbox_keeps_the_newest_frame_queues_commands_and_wakes_the_loop() -> No
     threading.Timer(0.05, inbox.on_frame, args=("frame 3",)).start()
     t0 = time.monotonic()
     inbox.wait(10.0)
-    assert time.monotonic() - t0 < 5.0 and inbox.take_frame() == "frame 3"
+    frame = inbox.take_frame()
+    assert time.monotonic() - t0 < 5.0 and frame is not None and frame.sample == "frame 3"
+    assert inbox.frames_superseded == 1  # frame 3 was taken, not superseded

@@ -13,20 +13,20 @@ JSON schemas of these models are committed under `ddvs_service/schemas/` (see `s
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, Final, Literal, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ddvs_service.protocol.errors import InvalidMessage
 from ddvs_service.protocol.upload import MAX_PIXELS, UploadFormat, decode_upload
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION: Final = 1
 COMMAND_MAX_BYTES = 16 << 20
 """Bound on a JSON message (a 1920×1080 float32 .npy reference upload is ≈ 11 MiB in base64)."""
 
 ServoStateName = Literal["IDLE", "READY", "SERVOING", "CONVERGED", "LOST", "STOPPED"]
 CommandOp = Literal["set_reference", "start", "stop", "reset", "get_state", "get_config", "set_config"]
-COMMAND_OPS: tuple[str, ...] = CommandOp.__args__
+COMMAND_OPS: tuple[str, ...] = get_args(CommandOp)
 Vector6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 NonNegative = Annotated[float, Field(ge=0.0)]
 Count = Annotated[int, Field(ge=0)]
@@ -121,11 +121,16 @@ class Latency(_Message):
 
 
 class Counters(_Message):
-    """Frames processed, dropped (superseded before processing) and rejected (failed to decode/validate)."""
+    """Frames since the service started, each counted once, none ever decreasing: `frames` processed (registered),
+    `dropped` (superseded by a newer frame before processing), `rejected` (failed to decode or validate), `stale`
+    (processed, but the twist withheld because two newer frames had arrived by then; also in `frames`) and `idle`
+    (arrived while IDLE, not answered)."""
 
     frames: Count
     dropped: Count
     rejected: Count
+    stale: Count = 0
+    idle: Count = 0
 
 
 class Status(_Message):

@@ -127,7 +127,7 @@ class ServiceConfig(_Strict):
 
     def merged(self, patch: dict[str, Any], intrinsics: Intrinsics | None = None) -> ServiceConfig:
         """A new configuration with `patch` (nested dicts merge) applied and fully checked (see `check`)."""
-        data = _deep_merge(self.model_dump(mode="json"), patch)
+        data = deep_merge(self.model_dump(mode="json"), patch)
         try:
             new = type(self).model_validate(data)
         except ValidationError as exc:
@@ -145,11 +145,12 @@ class ServiceConfig(_Strict):
             ControlLaw(law, intr)
 
 
-def _deep_merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
+def deep_merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
+    """`base` with `patch` applied: nested dicts merge key by key, any other value replaces."""
     out = dict(base)
     for key, value in patch.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
+            out[key] = deep_merge(out[key], value)
         else:
             out[key] = value
     return out

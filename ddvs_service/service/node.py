@@ -2,13 +2,17 @@
 
 One thread runs everything that touches the pipeline, in this order each turn: the oldest pending command
 (queryable `servo/command`), the newest camera info, the newest frame (only the newest is kept: a slow turn skips
-frames, never queues them), then the watchdog (zero twist when no frame arrived within `frame_timeout_s` while
-servoing). Zenoh callbacks only hand samples to that thread through an `Inbox` and wake it; they do no work, so they
-never block the session. Between turns the thread sleeps until something arrives or the watchdog is due.
+frames, never queues them), then the watchdog (zero twist when no frame *arrived* within `frame_timeout_s` while a
+non-zero twist stands; a slow frame while frames keep arriving is no timeout). Zenoh callbacks only hand samples to
+that thread through an `Inbox` and wake it; they do no work, so they never block the session. Between turns the
+thread sleeps until something arrives or the watchdog is due.
 
 Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
 frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the node keeps running.
-State (reference, configuration, servo state) is persisted atomically; a restarted node resumes from it.
+Never stale: the twist of frame k is withheld (and counted `stale`) when frames k+1 and k+2 arrived before it could
+go out — a newer frame's twist is about to follow. Frames in IDLE (no reference, none pending) are not answered.
+State (reference, servo state, intrinsics, run-time configuration changes) is persisted atomically by a background
+writer (`BackgroundWriter`: no fsync on this thread); a restarted node resumes from it.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import numpy as np
 import zenoh
 from numpy.typing import NDArray
 
+from ddvs_service.camera import Intrinsics
 from ddvs_service.logs import fields
 from ddvs_service.protocol import (
     Command,
@@ -49,9 +54,9 @@ from ddvs_service.protocol import (
     parse_command,
 )
 from ddvs_service.protocol.security import warn_if_insecure
-from ddvs_service.service.config import ServiceConfig
-from ddvs_service.service.inbox import Inbox
-from ddvs_service.service.persistence import StateStore
+from ddvs_service.service.config import IntrinsicsConfig, ServiceConfig, deep_merge
+from ddvs_service.service.inbox import Arrival, Inbox
+from ddvs_service.service.persistence import BackgroundWriter, StateStore
 from ddvs_service.service.pipeline import ServoPipeline, StepResult
 from ddvs_service.service.state import ServoState, TransitionError
 
@@ -59,6 +64,8 @@ log = logging.getLogger("ddvs.serve")
 ZERO6 = np.zeros(6)
 MAX_WAIT_S = 0.05  # longest sleep between turns: how soon a set `stop` is noticed
 RESUMING_STATES = (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
+STALE_AFTER = 2  # a frame's twist is stale once this many newer frames have arrived
+NOT_PERSISTED = ("zenoh", "state_dir")  # configuration that comes from the command line, never from the state
 
 
 class ServoNode:
@@ -66,31 +73,50 @@ class ServoNode:
 
     def __init__(self, config: ServiceConfig) -> None:
         self.store = StateStore(config.state_dir)
-        persisted = self.store.load_json("config.json")
-        if persisted is not None:
-            config = ServiceConfig.model_validate({**persisted, "zenoh": config.zenoh.model_dump(mode="json"),
-                                                   "state_dir": str(config.state_dir)})
-            log.info("resuming the persisted configuration", extra=fields(path=str(self.store.dir)))
-        self.config = config
-        self.keys = Keys(config.prefix, config.robot)
-        intrinsics = config.intrinsics.to_intrinsics() if config.intrinsics else None
-        self.pipeline = ServoPipeline(config, intrinsics)
-        self.counters = {"frames": 0, "rejected": 0}
+        state = self.store.load_json("state.json") or {}
+        self._config_changes: dict[str, Any] = state.get("config_changes") or {}
+        self.config = self._with_persisted_changes(config)
+        self.keys = Keys(self.config.prefix, self.config.robot)
+        self.pipeline = ServoPipeline(self.config, self._known_intrinsics(state))
+        self.counters = {"frames": 0, "rejected": 0, "stale": 0, "idle": 0}
         self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
         self._resume_state: ServoState | None = None
         self._reference_stamp_ns: int | None = None
-        self._last_frame_t = time.monotonic()
         self._zero_sent = True
         self._seq = 0
         self._last_status: Status | None = None
         self._persisted_rho: list[float] = []
         self._inbox = Inbox()
         self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float]] | None = None
-        self._restore()
+        self.writer = BackgroundWriter(self.store)
+        self._restore(state)
+        self._persist_config()
 
     # --- persistence --------------------------------------------------------------------------------------------
-    def _restore(self) -> None:
-        state = self.store.load_json("state.json") or {}
+    def _with_persisted_changes(self, given: ServiceConfig) -> ServiceConfig:
+        """The given configuration (file and command line) with the changes made at run time applied again."""
+        if not self._config_changes:
+            return given
+        try:
+            config = given.merged(self._config_changes)
+        except ValueError as exc:
+            log.error("persisted configuration changes no longer apply to the given configuration; dropped",
+                      extra=fields(changes=self._config_changes, error=str(exc)))
+            self._config_changes = {}
+            return given
+        log.info("applied the configuration changes made at run time",
+                 extra=fields(changes=self._config_changes, path=str(self.store.dir)))
+        return config
+
+    def _known_intrinsics(self, state: dict[str, Any]) -> Intrinsics | None:
+        """Configured intrinsics, else those of the last camera info (persisted), else None (wait for one)."""
+        if self.config.intrinsics is not None:
+            return self.config.intrinsics.to_intrinsics()
+        if state.get("intrinsics"):
+            return IntrinsicsConfig.model_validate(state["intrinsics"]).to_intrinsics()
+        return None
+
+    def _restore(self, state: dict[str, Any]) -> None:
         reference = self.store.load_reference()
         if reference is None:
             return
@@ -118,15 +144,19 @@ class ServoNode:
         log.info("resumed persisted reference", extra=fields(state=self.pipeline.machine.state.value, roi=roi))
 
     def _persist_state(self) -> None:
-        self.store.save_json("state.json", {
+        intr = self.pipeline.intrinsics
+        self.writer.put_json("state.json", {
             "state": self.pipeline.machine.state.value,
             "roi": list(self.pipeline.roi) if self.pipeline.roi else None,
             "reference_stamp_ns": self._reference_stamp_ns,
             "rho_coeffs": self.pipeline.rho_coeffs,
+            "intrinsics": None if intr is None else {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                                                     "width": intr.width, "height": intr.height},
+            "config_changes": self._config_changes,
         })
 
     def _persist_config(self) -> None:
-        self.store.save_json("config.json", self.config.model_dump(mode="json", exclude={"zenoh", "state_dir"}))
+        self.writer.put_json("config.json", self.config.model_dump(mode="json", exclude=set(NOT_PERSISTED)))
 
     # --- main loop ----------------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -137,6 +167,7 @@ class ServoNode:
             self._serve(session, stop)
         finally:
             session.close()
+            self.writer.close()
 
     def _serve(self, session: zenoh.Session, stop: threading.Event) -> None:
         k = self.keys
@@ -166,13 +197,14 @@ class ServoNode:
                 declared.undeclare()
             for pub in self._pub.values():
                 pub.undeclare()
-            log.info("service stopped", extra=fields(**self.counters, received=inbox.frames_received))
+            log.info("service stopped", extra=fields(**self._counters().model_dump(),
+                                                      received=inbox.frames_received))
 
     def _wait_timeout(self) -> float:
         """Seconds the loop may sleep: until the watchdog is due while a non-zero twist stands, `MAX_WAIT_S` at most."""
         if self._zero_sent:
             return MAX_WAIT_S
-        due = self._last_frame_t + self.config.frame_timeout_s - time.monotonic()
+        due = self._inbox.last_arrival_t + self.config.frame_timeout_s - time.monotonic()
         return min(max(due, 0.0), MAX_WAIT_S)
 
     # --- inputs -------------------------------------------------------------------------------------------------
@@ -181,24 +213,29 @@ class ServoNode:
             return  # configured intrinsics take precedence over camera info
         try:
             intrinsics = decode_camera_info(sample.payload.to_bytes()).to_intrinsics()
+            if intrinsics == self.pipeline.intrinsics:
+                return
             self.pipeline.set_intrinsics(intrinsics)
             self._try_adopt_restored()
+            self._persist_state()
         except (ProtocolError, ValueError) as exc:
             self.counters["rejected"] += 1
             log.warning("camera info rejected", extra=fields(error=str(exc)))
 
-    def _handle_frame(self, sample: zenoh.Sample | None) -> None:
-        if sample is None:
+    def _handle_frame(self, arrival: Arrival[zenoh.Sample] | None) -> None:
+        if arrival is None:
             return
-        t_arrival = time.perf_counter()
-        self._last_frame_t = time.monotonic()
+        if self.pipeline.machine.state == ServoState.IDLE and self._pending_reference is None:
+            self.counters["idle"] += 1  # nothing to servo to: no twist, no status
+            return
+        t_taken = time.monotonic()
         try:
-            msg = decode_image(sample.payload.to_bytes(), max_bytes=self.config.max_frame_bytes)
+            msg = decode_image(arrival.sample.payload.to_bytes(), max_bytes=self.config.max_frame_bytes)
             image = _grey_view(msg.array, msg.encoding)
         except (ProtocolError, ValueError) as exc:
             self._reject_frame(f"frame rejected: {exc}")
             return
-        t_decoded = time.perf_counter()
+        t_decoded = time.monotonic()
         if self._pending_reference is not None:
             self._adopt_next_frame(image, msg.header.stamp.to_ns())
         try:
@@ -207,17 +244,23 @@ class ServoNode:
             self._reject_frame(f"frame rejected: {exc}")
             return
         self.counters["frames"] += 1
-        t_publish = time.perf_counter()
-        self._publish_twist(step.twist, msg.header.stamp, msg.header.frame_id)
-        t_done = time.perf_counter()
+        t_publish = time.monotonic()
+        newer = self._inbox.frames_received - arrival.index
+        stale = newer >= STALE_AFTER
+        if stale:
+            self.counters["stale"] += 1
+            step.message = f"stale: twist withheld, {newer} newer frames arrived while it was computed"
+        else:
+            self._publish_twist(step.twist, msg.header.stamp, msg.header.frame_id)
+        t_done = time.monotonic()
         latency = {
-            "decode": (t_decoded - t_arrival) * 1e3,
+            "decode": (t_decoded - t_taken) * 1e3,
             "registration": step.timings_ms.get("registration", 0.0),
             "control": step.timings_ms.get("control", 0.0),
             "publish": (t_done - t_publish) * 1e3,
-            "total": (t_done - t_arrival) * 1e3,
+            "total": (t_done - arrival.t) * 1e3,
         }
-        self._publish_status(step, msg.header.stamp.to_ns(), latency)
+        self._publish_status(step, msg.header.stamp.to_ns(), latency, stale)
 
     def _reject_frame(self, message: str) -> None:
         self.counters["rejected"] += 1
@@ -240,7 +283,7 @@ class ServoNode:
             log.error("reference from the next frame refused", extra=fields(error=str(exc)))
 
     def _watchdog(self) -> None:
-        if self._zero_sent or time.monotonic() - self._last_frame_t < self.config.frame_timeout_s:
+        if self._zero_sent or time.monotonic() - self._inbox.last_arrival_t < self.config.frame_timeout_s:
             return
         log.warning("no frame within the timeout: zero twist", extra=fields(timeout_s=self.config.frame_timeout_s))
         self._publish_twist(ZERO6, Time.now())
@@ -284,6 +327,9 @@ class ServoNode:
             new = self.config.merged(command.config, self.pipeline.intrinsics)
             self.pipeline.apply_config(new)
             self.config = new
+            changes = {key: value for key, value in command.config.items() if key not in NOT_PERSISTED}
+            self._config_changes = deep_merge(self._config_changes, changes)
+            self._persist_state()
             self._persist_config()
             self._publish_config()
             return new.model_dump(mode="json", exclude={"zenoh"})
@@ -302,7 +348,7 @@ class ServoNode:
             self._publish_twist(ZERO6, Time.now())
         elif op == "reset":
             self.pipeline.clear_reference()
-            self.store.clear_reference()
+            self.writer.remove_reference()
             self._reference_stamp_ns = None
             self._publish_twist(ZERO6, Time.now())
         self._persist_state()
@@ -314,7 +360,7 @@ class ServoNode:
         roi_used = self.pipeline.set_reference(image, roi, G0=G0)
         self._reference_stamp_ns = stamp_ns
         reference = np.ascontiguousarray(image)
-        self.store.save_reference(reference)
+        self.writer.put_reference(reference.copy())
         self._persist_state()
         if reference.dtype == np.uint8 and reference.ndim == 2:
             self._pub["servo_reference"].put(encode_image(image_from_array(reference, "mono8")))
@@ -329,16 +375,19 @@ class ServoNode:
         self._pub["servo_twist"].put(encode_twist_stamped(msg))
         self._zero_sent = not np.any(twist)
 
-    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float]) -> None:
+    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool) -> None:
+        """The frame's `Status`: every frame with `status_every_frame`, else on a state change or a stale twist."""
         previous = self._last_status.state if self._last_status else None
-        self._emit_status(Status(
-            robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
-            error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
-            residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
-            twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self._counters(),
-            message=step.message[:500],
-        ))
-        if previous != step.state.value or self.pipeline.rho_coeffs != self._persisted_rho:
+        changed = previous != step.state.value
+        if self.config.status_every_frame or changed or stale:
+            self._emit_status(Status(
+                robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
+                error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
+                residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
+                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self._counters(),
+                message=step.message[:500],
+            ))
+        if changed or self.pipeline.rho_coeffs != self._persisted_rho:
             self._persisted_rho = list(self.pipeline.rho_coeffs)
             self._persist_state()
             self._publish_state(step.message or "frame")
@@ -365,10 +414,7 @@ class ServoNode:
         )
 
     def _counters(self) -> Counters:
-        received = self._inbox.frames_received
-        done = self.counters["frames"] + self.counters["rejected"]
-        return Counters(frames=self.counters["frames"], dropped=max(received - done, 0),
-                        rejected=self.counters["rejected"])
+        return Counters(dropped=self._inbox.frames_superseded, **self.counters)
 
     def _next_seq(self) -> int:
         self._seq += 1

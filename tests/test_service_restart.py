@@ -1,0 +1,63 @@
+"""What a restarted `ddvs serve` resumes (real Zenoh sessions on loopback, the service in a subprocess): the
+reference and servo state without waiting for a camera info when its intrinsics are known, and a configuration made
+of the given file plus the changes made at run time, with `config.json` in the state directory from the start."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from conftest import free_port
+from test_service_node import F, H, W, running_service, scene, service_config, shifted
+
+from ddvs_service.camera import Intrinsics
+from ddvs_service.protocol import encode_camera_info
+from ddvs_service.protocol.ros import CameraInfo, Header, Time
+
+
+def test_restart_resumes_without_camera_info(tmp_path: Path) -> None:
+    """The intrinsics came from a camera info (none configured): after a restart the reference and SERVOING are back
+    at once, and the next frame is servoed although no camera info was published since."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state").model_copy(update={"intrinsics": None})
+    info = CameraInfo.from_intrinsics(Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H),
+                                      Header(Time.from_ns(1), "camera"))
+    img = scene()
+    with running_service(config, tmp_path, port) as (_, op):
+        publisher = op.session.declare_publisher(op.keys.key("camera_info"))
+        publisher.put(encode_camera_info(info))
+        publisher.undeclare()
+        assert op.command(op="set_reference", source="next_frame").ok
+        assert op.send(img)["state"] == "READY"
+        assert op.command(op="start").ok
+        assert op.send(shifted(img, 5.0, 3.0))["state"] == "SERVOING"
+    with running_service(config, tmp_path, port) as (_, op):
+        snapshot = op.command(op="get_state").data
+        assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING", snapshot
+        status = op.send(shifted(img, 5.0, 3.0))
+        assert status["state"] == "SERVOING", status
+
+
+def test_state_directory_holds_the_active_configuration_from_the_start(tmp_path: Path) -> None:
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    with running_service(config, tmp_path, port) as (_, op):
+        active = op.command(op="get_config").data
+        path = tmp_path / "state" / "config.json"
+        assert path.exists(), "no config.json in the state directory after start"
+        assert json.loads(path.read_text()) == {k: v for k, v in active.items() if k != "state_dir"}
+
+
+def test_restart_applies_the_edited_file_and_keeps_run_time_changes(tmp_path: Path) -> None:
+    """A gain changed at run time survives a restart, and so does an edit of the configuration file made meanwhile
+    (the state directory keeps the run-time changes, not a copy of the whole file that would hide the edit)."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_config", config={"control": {"gains": 0.3}}).ok
+    edited = config.merged({"frame_timeout_s": 0.25, "control": {"max_linear": 0.1}})
+    with running_service(edited, tmp_path, port) as (_, op):
+        active = op.command(op="get_config").data
+    assert active["control"]["gains"] == 0.3
+    assert active["frame_timeout_s"] == 0.25 and active["control"]["max_linear"] == 0.1
+    assert json.loads((tmp_path / "state" / "config.json").read_text())["frame_timeout_s"] == 0.25
