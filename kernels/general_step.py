@@ -23,7 +23,7 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
     (`y` fixed) `φ_k = Σ_i C_ki x^i` with `C_ki = Σ_j B_kij y^j`, so the pixel loop accumulates the `degree + 1`
     columns `x^i ge` (`ge` the image derivative along `e`) instead of the `n_rho` columns `φ_k ge`, and each row's
     sums are folded into the output layout through `C` (`_row_expansion`): 16 instead of 19 columns per pixel for
-    degree 2 (launch 2.05 → 1.80 ms at 200×150), 16 instead of 26 for degree 3 (7.8 → 2.2 ms);
+    degree 2, 16 instead of 26 for degree 3 (what that saves: docs/performance.md);
   - gain nodes `φ_gain · I(w)` and the bias 1 (as `kernels.planar_step`);
 - reference pixels masked by the caller (`planar_step.MASKED`) get weight 0, as do warps whose 4×4 taps leave the
   image (branch-free: the accumulation loop has no ndarray store and no branch, so LLVM vectorises it);
@@ -36,7 +36,7 @@ pass adds the partials. A band walks each row in tiles of `ROW_TILE` columns: th
 |r| in a thread-local buffer, which a second, scalar loop bins into the histogram (its stores are indexed by data,
 which would stop the first loop's vectorisation; re-sampling there instead cost as much as the accumulation).
 Validity tests combine with `&`, never `and`: Taichi lowers `and` to a branch, and that one branch kept LLVM from
-vectorising the accumulation loop (measured 2.8 → 1.3 ms per 200×150 launch on 2 cores).
+vectorising the accumulation loop (docs/performance.md).
 One float32 parameter array in (`PARAMS_*`), one float32 work array out (`work_size`).
 """
 

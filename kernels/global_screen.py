@@ -78,7 +78,7 @@ def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), gain: 
     cr, okr = warped_sample(cur, G, fu + 1.0, fv)
     cu, oku = warped_sample(cur, G, fu, fv - 1.0)
     cd, okd = warped_sample(cur, G, fu, fv + 1.0)
-    ok = ref_ok & (ok0 + okl + okr + oku + okd == 5)  # `and` would be a branch (docs/ARCHITECTURE.md)
+    ok = ref_ok & (ok0 + okl + okr + oku + okd == 5)  # `and` would be a branch (docs/performance.md)
     r = gain * c0 + bias - ir
     gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
     gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)

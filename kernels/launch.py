@@ -1,9 +1,9 @@
 """Prepared kernel launches: bind a Taichi kernel to fixed numpy buffers once, then relaunch it cheaply.
 
 A plain call of a `@ti.kernel` re-walks its arguments in Python on every launch (type checks, pointer extraction,
-a new launch context): on this project's 2-core machines ~0.23 ms of a 0.29 ms launch of a trivial kernel with
-four ndarray arguments, measured against 0.055 ms for a prepared relaunch (PLATFORM-NOTES: the launch cost grows
-with every ndarray argument). An iterative solver launches the same kernel on the same buffers many times with only
+a new launch context): most of the cost of launching a kernel with a few ndarray arguments, and several times that
+of a prepared relaunch (figures: docs/performance.md; PLATFORM-NOTES: the launch cost grows with every ndarray
+argument). An iterative solver launches the same kernel on the same buffers many times with only
 their *contents* changing (parameters in, sums out), so `Prepared` builds the launch context once and replays it.
 
 Contract: the numpy arrays given to `Prepared` must stay C-contiguous, keep their shape and stay alive (the object

@@ -18,7 +18,7 @@ Pixels whose reference value or reference neighbours are masked (set to `MASKED`
 filtering) or whose five warped samples are not all inside the current image get weight 0. Reductions follow
 PLATFORM-NOTES: each thread owns a band of rows, warps them into a thread-local rolling buffer, accumulates in
 registers row by row and writes one partial; a serial tail adds the partials. The warp and accumulation loops store
-only into thread-local arrays and have no data-dependent branch, so LLVM vectorises them (docs/ARCHITECTURE.md).
+only into thread-local arrays and have no data-dependent branch, so LLVM vectorises them (docs/performance.md).
 Parameters come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array
 (`work_size`).
 """

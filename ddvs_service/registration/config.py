@@ -46,15 +46,14 @@ class RegistrationConfig:
       the optimum (bikes 1→6, 200×150 ROI: 2.46 px from the ground truth with the defaults, 0.57 px with γ = 2.2
       and the defocus estimated; `benchmarks/real_pairs.py`, `benchmarks/irradiance_blur.py`). `S`, `β`,
       residuals and σ are then in irradiance units. On strongly darkened frames γ > 1 leaves few irradiance levels
-      (leuven 1→6 at 200×150: 1.00 → 1.28 px). Cost: one in-place launch per frame (0.33 ms at 320×240, 1.2 ms at
-      1000×700 on 2 cores, measured 2026-12-02).
+      (leuven 1→6 at 200×150: 1.00 → 1.28 px). Cost: one in-place launch per frame (docs/performance.md).
     - `defocus_px`: the current frames' defocus relative to the reference, the radius (full-resolution pixels) of
       the uniform disk that blurs the reference's irradiance before its pyramid is built; 0 = none.
-      `registration.defocus.register_defocus` estimates it for a pair. Cost: once per reference (the disk blur of a
-      1000×700 image: 8 ms at 1 px, 50 ms at 5.5 px).
+      `registration.defocus.register_defocus` estimates it for a pair. Cost: one disk blur per reference, growing
+      with the radius (docs/performance.md).
     - `bands`: the most row bands of the reduction (parallel work items), 1…32; a level uses one band per
       `PIXELS_PER_BAND` ROI pixels (`bands_for`): on small ROIs handing bands to threads costs more than it saves
-      (35×35: 0.15 ms per launch with one band, 0.25 ms with eight).
+      (docs/performance.md).
     """
 
     levels: int = 8

@@ -1,8 +1,8 @@
 """The current image's cubic B-spline coefficients (`kernels.bspline`), prefiltered only where they are sampled.
 
 The general engine samples the full-resolution current image through its interpolating cubic B-spline
-(`GeneralConfig.interpolation`). Prefiltering the whole image costs ~0.7 ms on a 550×418 frame, most of a tracked
-frame's budget, while the warped ROI covers a fraction of it. `SplineWindow.covering(image, box)` prefilters a
+(`GeneralConfig.interpolation`). Prefiltering the whole image would take most of a tracked frame's budget
+(docs/performance.md) while the warped ROI covers a fraction of it. `SplineWindow.covering(image, box)` prefilters a
 window around `box` (the warped ROI's bounding box) widened by `margin_px`, so that the iterations of a frame can
 move without leaving it, and keeps it for the frame: a later `box` inside the domain reuses the coefficients, one
 outside it prefilters a new window. Samples outside `domain` must be treated as invalid (the general kernel does,
