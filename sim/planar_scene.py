@@ -3,9 +3,9 @@
 A textured poster lies on the plane `n*ᵀ X* = d*` with `n* = [0, 0, 1]` (fronto-parallel to the reference camera)
 at distance `d*` metres. Pose convention: the current camera pose is given *in the reference camera frame*,
 `T_ref_cur = (R_c, t_c)` (OpenCV axes, metres), i.e. a point maps as `X = R_cᵀ (X* − t_c)`. The true homography from
-reference pixels to current pixels is then `H = K (R + t n*ᵀ/d*) K⁻¹` with `R = R_cᵀ`, `t = −R_cᵀ t_c` (EQUATIONS.md,
-"Euclidean meaning"). Both images are rendered from the same texture with `cv2.warpPerspective` (bilinear), so the
-only reference/current mismatch is interpolation.
+reference pixels to current pixels is then `H = K (R + t n*ᵀ/d*) K⁻¹` with `R = R_cᵀ`, `t = −R_cᵀ t_c`
+(docs/equations.md, "Euclidean meaning"). Both images are rendered from the same texture with
+`cv2.warpPerspective` (bilinear), so the only reference/current mismatch is interpolation.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Configuration-time checks of the control laws against Theorems 3.1 and 3.2 (EQUATIONS.md (17), (18), (26)–(28),
+"""Configuration-time checks of the control laws against Theorems 3.1 and 3.2 (docs/equations.md: (17), (18), (26)–(28),
 (34), (35)); a configuration that cannot be locally stable is refused with `UnstableConfigurationError` naming the
 failed condition.
 
