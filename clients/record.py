@@ -1,137 +1,26 @@
 """`ddvs record`: record a servo run from Zenoh into a rosbag2 bag (MCAP storage; `clients/bag.py`,
 docs/recording.md) with `clients.bag_recorder.BagRecorder`; `ddvs record --recover BAG` makes a killed recorder's
-bag whole.
-
-`Recorder` writes the older JSON Lines recording (`clients/recording.py`) that `orchestration/arm_run.py` still
-uses: `servo/status` and `servo/state` (JSON, every sample), `servo/twist`, `arm/joint_states`, `arm/ground_truth`,
-`camera/info` (only when it changes) and optionally every N-th camera image (PNG). Zenoh callbacks only enqueue the
-raw payload with its arrival time; one writer thread decodes and writes (frames beyond a bounded queue are dropped
-and counted; the small messages are never dropped).
-"""
+bag whole."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import queue
 import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-from clients.recording import RECORDED_KEYS, decode_record
-
 if TYPE_CHECKING:
-    import zenoh
-
-    from clients.recording import RecordingWriter
     from ddvs_service.protocol import Keys
 
 log = logging.getLogger(__name__)
-FRAME_QUEUE = 64
-class Recorder:
-    """Subscribes the recorded keys on `session` and writes them with `writer` until `run`'s stop event is set."""
-
-    def __init__(self, session: zenoh.Session, keys: Keys, writer: RecordingWriter, frame_every: int = 0) -> None:
-        if frame_every < 0:
-            raise ValueError(f"frame_every must be ≥ 0 (0: no frames), got {frame_every}")
-        self.writer = writer
-        self.frame_every = frame_every
-        self.rejected = 0
-        self.frames_dropped = 0
-        self._messages: queue.SimpleQueue[tuple[str, int, bytes]] = queue.SimpleQueue()
-        self._frames: queue.Queue[tuple[int, bytes]] = queue.Queue(FRAME_QUEUE)
-        self._frames_seen = 0
-        self._last_info: tuple | None = None
-        self._subscribers = [
-            session.declare_subscriber(keys.key(key_name), self._enqueue(stream))
-            for stream, key_name in RECORDED_KEYS.items()
-        ]
-        if frame_every:
-            self._subscribers.append(session.declare_subscriber(keys.camera_image, self._enqueue_frame))
-
-    def _enqueue(self, stream: str):
-        def callback(sample: zenoh.Sample) -> None:
-            self._messages.put((stream, time.time_ns(), sample.payload.to_bytes()))
-
-        return callback
-
-    def _enqueue_frame(self, sample: zenoh.Sample) -> None:
-        self._frames_seen += 1
-        if (self._frames_seen - 1) % self.frame_every:
-            return
-        try:
-            self._frames.put_nowait((time.time_ns(), sample.payload.to_bytes()))
-        except queue.Full:
-            self.frames_dropped += 1
-
-    def close(self) -> None:
-        for subscriber in self._subscribers:
-            subscriber.undeclare()
-        self._subscribers.clear()
-
-    def _write_message(self, stream: str, recv_ns: int, payload: bytes) -> None:
-        try:
-            record = decode_record(stream, payload, recv_ns)
-        except ValueError as exc:
-            self.rejected += 1
-            log.warning("not recording a %s sample: %s", stream, exc)
-            return
-        if stream == "camera_info":
-            fingerprint = (record["width"], record["height"], tuple(record["k"]), tuple(record["d"]))
-            if fingerprint == self._last_info:
-                return
-            self._last_info = fingerprint
-        self.writer.write(stream, record)
-
-    def _write_frame(self, recv_ns: int, payload: bytes) -> None:
-        from ddvs_service.protocol import decode_image
-
-        try:
-            image = decode_image(payload)
-        except ValueError as exc:
-            self.rejected += 1
-            log.warning("not recording a frame: %s", exc)
-            return
-        pixels = image.array
-        if image.encoding in ("rgb8", "rgba8"):
-            import cv2
-
-            pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR if image.encoding == "rgb8" else cv2.COLOR_RGBA2BGRA)
-        self.writer.write_frame(pixels, {"recv_ns": recv_ns, "stamp_ns": image.header.stamp.to_ns(),
-                                         "encoding": image.encoding})
-
-    def drain(self) -> int:
-        """Write everything queued so far; returns the number of samples handled."""
-        handled = 0
-        while True:
-            try:
-                self._write_message(*self._messages.get_nowait())
-            except queue.Empty:
-                break
-            handled += 1
-        while True:
-            try:
-                self._write_frame(*self._frames.get_nowait())
-            except queue.Empty:
-                break
-            handled += 1
-        return handled
-
-    def run(self, stop: threading.Event, poll: float = 0.01) -> None:
-        """Write samples as they arrive until `stop` is set, then write what is still queued."""
-        while not stop.is_set():
-            if not self.drain():
-                stop.wait(poll)
-        self.drain()
 
 
 def recording_meta(keys: Keys, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """A recording's metadata (`meta.json`, or a bag's `ddvs` metadata record): the recorded key expressions, the
-    start time, and `extra` (e.g. a reference pose)."""
-    return {"prefix": keys.prefix, "robot": keys.robot, "started_ns": time.time_ns(),
-            "keys": {stream: keys.key(name) for stream, name in {**RECORDED_KEYS, "frames": "camera_image"}.items()},
-            **(extra or {})}
+    """A bag's `ddvs` metadata: the robot's key prefix and name, the start time (ns since the epoch), and `extra`
+    (e.g. a reference pose)."""
+    return {"prefix": keys.prefix, "robot": keys.robot, "started_ns": time.time_ns(), **(extra or {})}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
