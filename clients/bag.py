@@ -257,6 +257,14 @@ def bag_messages(directory: str | Path) -> Iterator[BagMessage]:
             yield from iter_messages(path)
 
 
+def bag_counts(directory: str | Path) -> dict[str, int]:
+    """Messages per topic of a bag (both files; a killed recorder's bag up to its last complete chunk)."""
+    counts: dict[str, int] = {}
+    for message in bag_messages(directory):
+        counts[message.topic] = counts.get(message.topic, 0) + 1
+    return counts
+
+
 def bag_meta(directory: str | Path) -> dict[str, Any]:
     """The `ddvs` metadata record of the bag's ROS 2 file (JSON values decoded), {} without one."""
     contents = FileContents({}, {}, {})

@@ -9,8 +9,9 @@ Sequence:
    the service, the bridge and this process connect to the ports they need (a full mesh; multicast scouting off).
 3. Wait for the service's first status (it has the camera info then), upload I* with `set_reference` (source
    upload, with the template ROI), then `start`. The service globally initialises the first frame against I*.
-4. Record status, twists, joint states and ground truth (`clients.record.Recorder`, meta holds `reference_pose`)
-   until the servo is CONVERGED for `settle_images` images, or `max_images` / `time_limit` is reached.
+4. Record the run into a bag (`clients.bag_recorder.BagRecorder`: frames, camera info, twists, joint states,
+   reference, status, state, ground truth, configuration; meta holds `reference_pose`) until the servo is
+   CONVERGED for `settle_images` images, or `max_images` / `time_limit` is reached.
 5. Stop every child (SIGINT, then SIGKILL after a grace period) — also on an exception or Ctrl-C.
 
 The ROI: `template` (w, h) centred on the control point p* (the principal point by default), as the paper's 70×70.
@@ -150,7 +151,8 @@ def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> dict
         "robot": settings.robot,
         "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{listen}"], "connect": [f"tcp/127.0.0.1:{sim_port}"]},
         "state_dir": str(settings.out_dir / "state"),
-        "registration": {"template_size": list(settings.template), "global_init": True},
+        # levels 3: the pyramid of the measured arm runs (the service's default is the engine's, 8 at most)
+        "registration": {"template_size": list(settings.template), "levels": 3, "global_init": True},
         "control": {"law": settings.law, "gains": settings.gain, "stop_threshold": settings.stop_threshold},
     }
 
@@ -224,8 +226,10 @@ class ArmRun:
 @contextmanager
 def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
     """Steps 1–3 of the module docstring; yields the started, recording run; step 5 (stop everything) at exit."""
-    from clients.record import Recorder, recording_meta
-    from clients.recording import RecordingWriter
+    from clients.bag import BagWriter
+    from clients.bag_recorder import BagRecorder
+    from clients.channels import run_channels
+    from clients.record import recording_meta
     from ddvs_service.protocol import Command, ReferenceImage, SessionConfig, encode_upload, open_session
 
     out = settings.out_dir
@@ -266,9 +270,9 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
         meta = {"reference_pose": T_world_ref.reshape(-1).tolist(), "law": settings.law,
                 "template": list(settings.template), "clock": settings.clock, "fps": settings.fps,
                 "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene)}
-        writer = RecordingWriter(out / "recording", recording_meta(run.keys, meta))
+        writer = BagWriter(out / "recording", run_channels(run.keys), recording_meta(run.keys, meta))
         stack.callback(writer.close)
-        recorder = Recorder(session, run.keys, writer)
+        recorder = BagRecorder(session, run.keys, writer)
         stack.callback(recorder.close)
         stop_recording = threading.Event()
         recorder_thread = threading.Thread(target=recorder.run, args=(stop_recording,), daemon=True)

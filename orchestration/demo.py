@@ -2,10 +2,12 @@
 
 Runs `orchestration.arm_run.run_arm` (sim, bridge and service as separate processes over Zenoh on loopback) with the
 decoupled law (16)/(25) and the sim's real-time clock (30 Hz) by default, prints one progress line per second
-(state, error norm, images since start), and writes to `--out` (default `reports/demo/`): the recording, the
-figures of `ddvs plot`, `summary.json` and `summary.md` (images to convergence beside the paper's 417 / 309, final
-pose error, latencies). It always ends: converged (then settled for a few images) or at `--time-limit`; the child
-processes are stopped on every exit path, Ctrl-C included. Exit status 0 when converged, 1 otherwise.
+(state, error norm, images since start), and writes to `--out` (default `reports/demo/`): the recording (a rosbag2
+bag in MCAP storage, `recording/`), the figures of `ddvs plot`, `summary.json` and `summary.md` (images to
+convergence beside the paper's 417 / 309, final pose error, latencies, the bag's message counts and how to open it
+in Foxglove and replay it with ROS 2). It always ends: converged (then settled for a few images) or at
+`--time-limit`; the child processes are stopped on every exit path, Ctrl-C included. Exit status 0 when converged,
+1 otherwise.
 """
 
 from __future__ import annotations
@@ -23,10 +25,12 @@ LAW_NAMES = {"dvs_reduced": "DVS (reduced error (13))", "dvs": "DVS", "ddvs": "d
 def write_report(result: Any, settings: Any, out_dir: Path) -> dict[str, Any]:
     """Plots + `summary.json` + `summary.md` of one `ArmRunResult` into `out_dir`; returns the summary dict."""
     from clients.analysis import summarize
+    from clients.bag import bag_counts, storage_files
     from clients.plot import plot_recording
     from clients.recording import load_recording
 
     recording = load_recording(result.recording_dir)
+    bag = Path(result.recording_dir)
     title = f"{LAW_NAMES[settings.law]}, {settings.template[0]}×{settings.template[1]} template, {settings.clock}"
     figures = plot_recording(recording, out_dir / "plots", title)
     summary = {
@@ -35,6 +39,7 @@ def write_report(result: Any, settings: Any, out_dir: Path) -> dict[str, Any]:
         "paper_images_to_convergence": PAPER_IMAGES[settings.law],
         **summarize(recording).as_dict(),
         "figures": [str(p.relative_to(out_dir)) for p in figures],
+        "recording": {"bag": str(bag), "files": [str(p) for p in storage_files(bag)], "messages": bag_counts(bag)},
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     (out_dir / "summary.md").write_text(summary_markdown(summary), encoding="utf-8")
@@ -67,8 +72,28 @@ def summary_markdown(s: dict[str, Any]) -> str:
         "",
         "Figures: " + ", ".join(f"[{Path(f).name}]({f})" for f in s["figures"]),
         "",
+        *recording_markdown(s["recording"]),
     ]
     return "\n".join(lines)
+
+
+def recording_markdown(recording: dict[str, Any]) -> list[str]:
+    """How to open the run's bag in Foxglove and replay it with ROS 2, and its message counts."""
+    ros_file, json_file = recording["files"]
+    return [
+        f"## Recording: `{recording['bag']}` (rosbag2, MCAP storage; docs/recording.md)",
+        "",
+        "| topic | messages |",
+        "|---|---|",
+        *(f"| `{topic}` | {count} |" for topic, count in sorted(recording["messages"].items())),
+        "",
+        f"- Foxglove: *Open local file* and select both `{ros_file}` and `{json_file}`, then *Layouts → Import from "
+        "file* `docs/foxglove/ddvs-layout.json` (current image, reference, error norm, twist, state).",
+        f"- ROS 2 (Jazzy or later, with `rosbag2_storage_mcap`): `ros2 bag info {recording['bag']}`, "
+        f"`ros2 bag play {recording['bag']}` (the CDR topics: images, camera info, twist, joint states, reference).",
+        f"- Python: `rosbags.highlevel.AnyReader([Path('{recording['bag']}')])`; `ddvs plot {recording['bag']}`.",
+        "",
+    ]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

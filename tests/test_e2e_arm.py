@@ -3,8 +3,9 @@ separate processes over Zenoh on loopback, the paper's real-data set-up (planar 
 reference camera, displacement t = [0.13, −0.23, −0.08] m, r = [−20.3, 2.17, 14.59]°, 320×240, f = 420 px,
 λ = 0.4, stop at ‖ε‖ < 1e-3). The reference image is rendered at the reference pose and uploaded.
 
-Each case writes its recording, plots and summary to `reports/e2e_arm/<case>/` (images to convergence beside the
-paper's 417 for DVS and 309 for the decoupled DVS).
+Each case writes its recording (a bag, which `rosbags` and the `mcap` reader must read completely), plots and
+summary to `reports/e2e_arm/<case>/` (images to convergence beside the paper's 417 for DVS and 309 for the
+decoupled DVS).
 """
 
 from __future__ import annotations
@@ -14,7 +15,10 @@ import shutil
 from pathlib import Path
 
 import pytest
+from bag_checks import check_bag
 
+from clients.channels import topic_name
+from ddvs_service.protocol import Keys
 from orchestration.arm_run import ArmRunSettings, run_arm
 from orchestration.demo import write_report
 
@@ -47,3 +51,6 @@ def test_both_laws_converge_to_the_reference_pose(law, template):
     assert summary["initial_translation_error_mm"] > 250.0  # it really started at the paper's displacement
     for figure in summary["figures"]:
         assert (out / figure).stat().st_size > 10_000, figure
+    counts = check_bag(result.recording_dir)  # rosbags decodes every ROS message; the mcap summaries agree
+    assert counts == summary["recording"]["messages"]
+    assert counts[topic_name(Keys(settings.prefix, settings.robot), "camera_image")] >= summary["frames"]
