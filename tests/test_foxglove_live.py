@@ -1,5 +1,6 @@
 """`ddvs monitor --foxglove`: a `websockets` client speaking the Foxglove WebSocket protocol on loopback
-subscribes every channel of the live view and receives each with the right schema, from a real Zenoh publisher."""
+subscribes every channel of the live view and receives each with the right schema, from a real Zenoh publisher;
+the layout shipped in docs/foxglove is the builder's output and names the run's channels."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from conftest import free_port
 from run_messages import run_payloads
 
 from clients.channels import pose_topic, run_channels, topic_name
+from clients.foxglove_layout import layout_json
 from ddvs_service.protocol import (
     GroundTruth,
     Header,
@@ -131,3 +133,13 @@ def test_a_websocket_client_receives_every_channel_with_its_schema():
     assert state["state"] == "SERVOING"
     image = received[by_topic[topic_name(KEYS, "camera_image")]["id"]][0]
     assert len(image) > 48 * 64 and np.frombuffer(image[-48 * 64:], np.uint8).max() > 0
+
+
+def test_the_shipped_layout_is_the_builders_and_names_run_channels():
+    shipped = (ROOT / "docs" / "foxglove" / "ddvs-layout.json").read_text(encoding="utf-8")
+    assert shipped == layout_json(Keys())
+    text = json.dumps(json.loads(shipped), ensure_ascii=False)
+    topics = {spec.topic for spec in run_channels(Keys())}
+    for key_name in ("camera_image", "camera_info", "servo_reference", "servo_status", "servo_twist", "servo_state"):
+        assert topic_name(Keys(), key_name) in text and topic_name(Keys(), key_name) in topics, key_name
+    assert pose_topic(Keys()) in text

@@ -1,0 +1,80 @@
+"""The Foxglove layout of a servo run, built with `foxglove.layouts` (foxglove-sdk) for one robot's topics.
+
+Top row: the current image (with its camera info) and the reference. Bottom row: the control error norm and the
+twist (v in m/s, ω in rad/s, camera frame) against time, the servo state over time and the newest `StateSnapshot`,
+and the camera pose in 3-D (ground-truth `world → camera` transforms of the live view). Not yet: a panel of the
+registration's residual image (the service does not publish it yet).
+
+`python -m clients.foxglove_layout [--prefix P --robot R] > layout.json` writes it; the repository ships
+`docs/foxglove/ddvs-layout.json` for robot `robot0` (a test keeps it equal to this builder's output). Open it in
+Foxglove with *Layouts → Import from file*.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import foxglove.layouts as fl
+
+from clients.channels import pose_topic, topic_name
+from ddvs_service.protocol import Keys
+
+
+def _image(topic: str, title: str, calibration: str | None = None) -> fl.ImagePanel:
+    mode = fl.ImageModeConfig(image_topic=topic, calibration_topic=calibration)
+    return fl.ImagePanel(title=title, config=fl.ImageConfig(image_mode=mode))
+
+
+def _plot(title: str, series: list[tuple[str, str]], label: str) -> fl.PlotPanel:
+    paths = [fl.PlotSeries(value=value, label=name, timestamp_method="receiveTime") for value, name in series]
+    return fl.PlotPanel(title=title, config=fl.PlotConfig(paths=paths, y_axis_label=label, show_legend=True))
+
+
+def build_layout(keys: Keys) -> fl.Layout:
+    """The layout for `keys`' robot (topics are the ROS names of its keys)."""
+    def t(key_name: str) -> str:
+        return topic_name(keys, key_name)
+
+    twist = t("servo_twist")
+    top = fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(content=_image(t("camera_image"), "current image", calibration=t("camera_info"))),
+        fl.SplitItem(content=_image(t("servo_reference"), "reference")),
+    ])
+    plots = fl.SplitContainer(direction="column", items=[
+        fl.SplitItem(content=_plot("control error norm", [(f"{t('servo_status')}.error_norm", "‖ε̄‖")], "error")),
+        fl.SplitItem(content=_plot("linear velocity", [(f"{twist}.twist.linear.{c}", f"v{c}") for c in "xyz"],
+                                   "m/s")),
+        fl.SplitItem(content=_plot("angular velocity", [(f"{twist}.twist.angular.{c}", f"ω{c}") for c in "xyz"],
+                                   "rad/s")),
+    ])
+    state = fl.SplitContainer(direction="column", items=[
+        fl.SplitItem(content=fl.StateTransitionsPanel(title="servo state", config=fl.StateTransitionsConfig(
+            paths=[fl.StateTransitionsSeries(value=f"{t('servo_status')}.state", label="state",
+                                             timestamp_method="receiveTime")]))),
+        fl.SplitItem(proportion=2, content=fl.RawMessagesPanel(
+            title="state", config=fl.RawMessagesConfig(topic_path=t("servo_state")))),
+    ])
+    pose = fl.ThreeDeePanel(title="camera pose (ground truth)", config=fl.ThreeDeeConfig(
+        follow_tf="world", topics={pose_topic(keys): fl.BaseRendererBaseSettings(visible=True)}))
+    bottom = fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(proportion=2, content=plots), fl.SplitItem(content=state), fl.SplitItem(content=pose)])
+    return fl.Layout(content=fl.SplitContainer(direction="column", items=[
+        fl.SplitItem(content=top), fl.SplitItem(content=bottom)]))
+
+
+def layout_json(keys: Keys) -> str:
+    """The layout as an indented JSON document (the committed file's form)."""
+    return json.dumps(json.loads(build_layout(keys).to_json()), indent=2, ensure_ascii=False) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--prefix", default="ddvs")
+    parser.add_argument("--robot", default="robot0")
+    args = parser.parse_args()
+    print(layout_json(Keys(args.prefix, args.robot)), end="")
+
+
+if __name__ == "__main__":
+    main()
