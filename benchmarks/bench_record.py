@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_registration import write_readme_section  # noqa: E402
+from benchmarks.bench_tls import free_port  # noqa: E402
 from clients.bag import bag_messages, storage_files  # noqa: E402
 from clients.channels import run_channels  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402
@@ -55,14 +56,6 @@ from evaluation.pairs import load  # noqa: E402
 W, H = 320, 240
 KEYS = Keys("ddvs", "benchrec")
 CONFIGS = (("raw", "zstd"), ("raw", "lz4"), ("png", "zstd"), ("jpeg", "zstd"))
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def camera_frames(n: int, seed: int = 0) -> list[np.ndarray]:

@@ -14,6 +14,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from clients.channels import ChannelSpec, run_channels
@@ -119,20 +120,8 @@ class BagRecorder:
 
     def drain(self) -> int:
         """Write everything queued so far (closing the open chunks when due); returns the samples handled."""
-        handled = 0
-        while True:
-            try:
-                self._write(*self._messages.get_nowait())
-            except queue.Empty:
-                break
-            handled += 1
-        while True:
-            try:
-                self._write_frame(*self._frames.get_nowait())
-            except queue.Empty:
-                break
-            handled += 1
-            self.writer.flush_if_due()
+        handled = _drain(self._messages, self._write)
+        handled += _drain(self._frames, self._write_frame, self.writer.flush_if_due)
         self.writer.flush_if_due()
         return handled
 
@@ -142,3 +131,18 @@ class BagRecorder:
             if not self.drain():
                 stop.wait(poll)
         self.drain()
+
+
+def _drain(source: queue.Queue | queue.SimpleQueue, write: Callable[..., None],
+           after_each: Callable[[], object] | None = None) -> int:
+    """Hand every queued item to `write` (then call `after_each`); returns how many there were."""
+    handled = 0
+    while True:
+        try:
+            item = source.get_nowait()
+        except queue.Empty:
+            return handled
+        write(*item)
+        handled += 1
+        if after_each is not None:
+            after_each()
