@@ -131,17 +131,17 @@ class ArmSim:
     def step(self, qd: ArrayLike, dt: float) -> None:
         """Hold joint velocities `qd` (each saturated at its URDF velocity limit) for `dt` seconds of physics,
         in ⌈dt · physics_hz⌉ equal sub-steps (an ideal velocity-controlled arm: joint velocities switch at once)."""
-        qd = np.asarray(qd, dtype=np.float64).reshape(-1)
-        if qd.shape != (len(self.joint_names),) or not np.all(np.isfinite(qd)):
-            raise ValueError(f"expected {len(self.joint_names)} finite joint velocities {self.joint_names}, got {qd}")
+        cmd = np.asarray(qd, dtype=np.float64).reshape(-1)
+        if cmd.shape != (len(self.joint_names),) or not np.all(np.isfinite(cmd)):
+            raise ValueError(f"expected {len(self.joint_names)} finite joint velocities {self.joint_names}, got {cmd}")
         if dt <= 0:
             raise ValueError(f"dt must be > 0 seconds, got {dt}")
         vmax = self.kinematics.velocity_limit
-        qd = np.clip(qd, -vmax, vmax)
-        for joint, v in zip(self._joints, qd):
+        velocity = np.clip(cmd, -vmax, vmax)
+        for joint, v in zip(self._joints, velocity):
             joint.set_drive_velocity_target(float(v))
         # Start the step at the commanded velocity: the drive alone loses ~15 % of the first sub-step after a change.
-        self.robot.set_qvel(qd.astype(np.float32))
+        self.robot.set_qvel(velocity.astype(np.float32))
         n = max(1, math.ceil(dt * self.config.physics_hz - 1e-9))
         self.scene.set_timestep(dt / n)
         for _ in range(n):

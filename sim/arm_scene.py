@@ -86,7 +86,7 @@ def load_texture(path: str | None, seed: int = 0, size: tuple[int, int] = (640, 
     image = cv2.imread(str(Path(path).expanduser()), cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise FileNotFoundError(f"cannot read texture image {path!r} (missing file or format OpenCV cannot decode)")
-    return image
+    return np.asarray(image, dtype=np.uint8)
 
 
 @dataclass(frozen=True)

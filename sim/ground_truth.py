@@ -90,6 +90,6 @@ def ground_truth(
     m = intrinsics.normalize(p)
     z = float(surface.intersect(T_world_ref, m)[0])
     if not np.isfinite(z):
-        raise ValueError(f"the control pixel {tuple(p)} does not see the surface from the reference pose")
+        raise ValueError(f"the control pixel {np.asarray(p).tolist()} does not see the surface from the reference pose")
     G, e = homography_and_epipole(T_cur_ref, n_ref, intrinsics.K, scaling)
     return GroundTruth(G, e, float(parallax(m, [z], n_ref)[0]), z, n_ref, T_cur_ref)

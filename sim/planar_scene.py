@@ -55,9 +55,10 @@ class PlanarScene:
         """The image seen through the reference-to-current homography `H` (identity: the reference image)."""
         cam = self.intrinsics
         M = (np.eye(3) if H is None else H) @ self.texture_to_reference
-        return cv2.warpPerspective(
+        image = cv2.warpPerspective(
             self.texture, M, (cam.width, cam.height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
         )
+        return np.asarray(image, dtype=np.float32)
 
     def homography(self, R_c: F64, t_c: F64) -> F64:
         """Ground truth reference→current homography for the current pose `(R_c, t_c)` in the reference frame."""

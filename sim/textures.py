@@ -31,4 +31,4 @@ def load_texture(name_or_path: str, blur_sigma: float = 0.0) -> NDArray[np.float
     if image is None:
         raise ValueError(f"cannot read the texture image {str(path)!r}; expected a grey or colour image file")
     texture = image.astype(np.float32)
-    return cv2.GaussianBlur(texture, (0, 0), blur_sigma) if blur_sigma > 0 else texture
+    return np.asarray(cv2.GaussianBlur(texture, (0, 0), blur_sigma), dtype=np.float32) if blur_sigma > 0 else texture
