@@ -67,9 +67,9 @@ def main() -> None:
     reference = render_view(saddle, tex, INTR, np.eye(4))[0]
     images = frames(args.frames)
     T0 = pose(so3_exp(0.05 * np.array([-0.1, -0.31, 1.04])), 0.05 * np.array([0.17, -0.11, 0.01]))
-    planar = Tracker(reference, ROI)
+    planar = Tracker.prepare(reference, ROI)
     planar.reset(ground_truth(saddle, INTR, np.eye(4), T0).G)
-    general = GeneralTracker(reference, ROI)
+    general = GeneralTracker.prepare(reference, ROI)
     general.track(images[0])  # ρ* estimated here (multi-start), not timed
     tracks = {"planar Tracker": planar.track, "GeneralTracker": general.track}
     timed(tracks, images[:2])  # warm-up: compile every kernel variant

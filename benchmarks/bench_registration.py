@@ -91,7 +91,7 @@ def iteration_times(ref: np.ndarray, w: int, h: int, reps: int) -> dict[str, flo
     x, y = roi[0], roi[1]
     cur = warp(ref, similarity_about((x + w / 2, y + h / 2), (1.0, -0.7), 0.3, 1.003))
     config = RegistrationConfig(levels=1, max_iterations=ITERATIONS, step_tolerance_px=1e-12)
-    problem = PlanarRegistration(ref, roi=roi, config=config)
+    problem = PlanarRegistration.prepare(ref, roi=roi, config=config)
     params = _kernel_params(problem)
     template = np.ascontiguousarray(ref[y : y + h, x : x + w])
     ecc_start = np.array([[1, 0, x], [0, 1, y], [0, 0, 1]], dtype=np.float32)
@@ -143,7 +143,7 @@ def tracking(ref: np.ndarray, frames: int) -> dict[str, float]:
     truths = [similarity_about(centre, (1.6 * k, 1.2 * k), 0.1 * k, 1.0 + 0.001 * k) for k in range(frames + 1)]
     images = [warp(ref, H) for H in truths]
     corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1, 1, 1, 1]], dtype=float)
-    tracker = Tracker(ref, roi)
+    tracker = Tracker.prepare(ref, roi)
     tracker.track(images[0])  # compile
     times, errors, iterations = [], [], []
     for H_true, image in zip(truths[1:], images[1:], strict=True):

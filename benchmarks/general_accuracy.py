@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ddvs_service.registration.general import GeneralConfig
+from ddvs_service.registration.general_config import GeneralConfig
 from evaluation.general_accuracy import measure, renderer
 from sim.textures import load_texture
 

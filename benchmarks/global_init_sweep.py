@@ -108,7 +108,7 @@ def sweep_saddle(texture: str, init: GlobalInitializer, trials: int, seed: int) 
     tex = load_texture(texture, blur_sigma=0.5 * raw.shape[1] / (saddle.extent[0] * CAM.fx))
     reference = render_view(saddle, tex, CAM, np.eye(4))[0]
     pose_scene = PlanarScene(CAM, tex, depth=1.0)  # places the camera so the ROI centre lands as asked
-    problem = GeneralRegistration(reference, roi=ROI)
+    problem = GeneralRegistration.prepare(reference, roi=ROI)
     p = roi_grid(ROI)
     rho = parallax_map(saddle, CAM, np.eye(4))[p[:, 1].astype(int), p[:, 0].astype(int)]
     rng = np.random.default_rng(seed)

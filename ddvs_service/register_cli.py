@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # the modules themselves are imported by `run`, so that `ddvs --help` stays light
     from numpy.typing import NDArray
 
-    from ddvs_service.registration.general import GeneralResult
+    from ddvs_service.registration.general_result import GeneralResult
     from ddvs_service.registration.result import RegistrationResult
 
 
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
             extra["defocus_px"] = fit.defocus_px
             extra["defocus_trials"] = [[r, s if math.isfinite(s) else None, c] for r, s, c in fit.trials]
         elif args.model == "general":
-            from ddvs_service.registration.general import GeneralConfig
+            from ddvs_service.registration.general_config import GeneralConfig
             from ddvs_service.registration.general_register import register_general
 
             result = register_general(images[0], images[1], roi=roi, G0=G0,

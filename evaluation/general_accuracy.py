@@ -25,8 +25,9 @@ import numpy as np
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose
-from ddvs_service.registration.general import GeneralConfig, GeneralResult
 from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.general_config import GeneralConfig
+from ddvs_service.registration.general_result import GeneralResult
 from ddvs_service.registration.general_tracker import GeneralTracker
 from orchestration.experiment_synthetic import run_synthetic
 from sim.freeflyer import render_camera, render_view
@@ -88,7 +89,7 @@ def measure(render: Callable[[np.ndarray], np.ndarray], config: GeneralConfig) -
     u, v = np.meshgrid(np.arange(x, x + w, dtype=float), np.arange(y, y + h, dtype=float))
     p = np.c_[u.ravel(), v.ravel()]
     rho = parallax_map(saddle, INTR, np.eye(4))[p[:, 1].astype(int), p[:, 0].astype(int)]
-    tracker = GeneralTracker(render(np.eye(4)), ROI, config)
+    tracker = GeneralTracker.prepare(render(np.eye(4)), ROI, config)
     rows = []
     for k in [*range(0, 20, 2), *range(20, trajectory.images, 10), trajectory.images - 1]:
         T = pose(trajectory.rotations[k], trajectory.positions[k])

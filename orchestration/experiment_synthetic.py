@@ -97,7 +97,7 @@ class EstimatedGeometry:
         w, h = PAPER_ROI_SIZE
         roi = (round(intr.cx - 0.5 * (w - 1)), round(intr.cy - 0.5 * (h - 1)), w, h)
         self.control_point = (intr.cx, intr.cy)
-        self.tracker = GeneralTracker(scene.reference, roi)
+        self.tracker = GeneralTracker.prepare(scene.reference, roi)
         self.iterations: list[int] = []
 
     def __call__(self, frame: Frame) -> tuple[F64, F64, float]:

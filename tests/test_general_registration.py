@@ -16,16 +16,11 @@ import pytest
 from ddvs.cli import main
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, so3_exp
-from ddvs_service.registration.general import (
-    FLAG_LOST,
-    FLAG_NO_PARALLAX,
-    FLAG_OCCLUSION,
-    GeneralConfig,
-    GeneralRegistration,
-    warp_points,
-)
+from ddvs_service.registration.general import GeneralRegistration
 from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.general_config import FLAG_LOST, FLAG_NO_PARALLAX, FLAG_OCCLUSION, GeneralConfig
 from ddvs_service.registration.general_register import register_general
+from ddvs_service.registration.general_result import warp_points
 from ddvs_service.registration.general_tracker import GeneralTracker
 from evaluation.general_accuracy import measure
 from orchestration.experiment_synthetic import SyntheticSetup, run_synthetic
@@ -209,7 +204,7 @@ def test_rho_survives_standstill_and_lost_target() -> None:
     """ρ* is kept while the camera does not translate (e → 0) and through LOST and re-acquisition."""
     saddle = paper_saddle()
     reference = render(saddle, np.eye(4))
-    tracker = GeneralTracker(reference, ROI, GeneralConfig(lost_after=2))
+    tracker = GeneralTracker.prepare(reference, ROI, GeneralConfig(lost_after=2))
     T = pose(so3_exp([-0.05, -0.15, 0.5]), [0.08, -0.05, 0.0])
     first = tracker.track(render(saddle, T))
     assert first.converged and FLAG_NO_PARALLAX not in first.flags
@@ -279,4 +274,4 @@ def test_register_general_refuses_bad_input() -> None:
     with pytest.raises(ValueError, match="interpolation"):
         GeneralConfig(interpolation="lanczos")
     with pytest.raises(ValueError, match="not inside"):
-        GeneralRegistration(image, (500, 400, 200, 150))
+        GeneralRegistration.prepare(image, (500, 400, 200, 150))

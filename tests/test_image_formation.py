@@ -153,7 +153,7 @@ def test_tracker_follows_a_defocused_stream_in_irradiance():
 
     sharp = load("bikes", 1)
     roi = centred_roi(sharp.shape, 200, 150)
-    tracker = Tracker(sharp, roi, RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=4.0))
+    tracker = Tracker.prepare(sharp, roi, RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=4.0))
     H = np.eye(3)
     tracker.reset(H)
     for step in range(4):
@@ -175,7 +175,7 @@ def test_register_defocus_on_a_textureless_pair_reports_not_converged():
 def test_general_model_honours_gamma_and_defocus():
     """The general model (eq. (2)) runs on the planar engine's reference and current buffers, so it registers
     irradiance with the reference defocused too: a planar scene defocused by 4 px in irradiance, 7 px away."""
-    from ddvs_service.registration.general import GeneralConfig
+    from ddvs_service.registration.general_config import GeneralConfig
     from ddvs_service.registration.general_register import register_general
 
     sharp = load("bikes", 1)

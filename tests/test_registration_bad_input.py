@@ -82,7 +82,7 @@ def test_mask_excludes_pixels_and_all_masked_is_an_error():
 
 
 def test_tracker_follows_a_smooth_trajectory_and_survives_bad_frames():
-    tracker = Tracker(IMG, ROI, RegistrationConfig(levels=2))
+    tracker = Tracker.prepare(IMG, ROI, RegistrationConfig(levels=2))
     for k in range(1, 8):
         dx, dy = 2.0 * k, 1.0 * k
         result = tracker.track(shifted(dx, dy))

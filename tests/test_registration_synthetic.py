@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.planar import register, remaining_motion
+from ddvs_service.registration.planar import register
+from ddvs_service.registration.solver import remaining_motion
 from ddvs_service.registration.tracker import Tracker
 from evaluation.pairs import load
 
@@ -131,7 +132,7 @@ def test_tracker_converges_in_few_iterations(predict, median_bound, max_bound):
     converges within 0.05 px in a few iterations; the constant-velocity prediction halves them (measured 6 and 3)."""
     img = load("boat", 1)
     truths = [similarity_about(CENTRE, (1.6 * k, 1.2 * k), 0.1 * k, 1.0 + 0.001 * k) for k in range(13)]
-    tracker = Tracker(img, ROI, RegistrationConfig(predict_motion=predict))
+    tracker = Tracker.prepare(img, ROI, RegistrationConfig(predict_motion=predict))
     iterations = []
     for H_true in truths:
         result = tracker.track(warp(img, H_true))

@@ -23,7 +23,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.planar import PlanarRegistration, Roi
+from ddvs_service.registration.planar import PlanarRegistration
+from ddvs_service.registration.reference import Roi
 from ddvs_service.registration.result import RegistrationResult
 from kernels.planar_step import MASK_LIMIT
 
@@ -82,7 +83,7 @@ def register_defocus(
     start = None if G0 is None else np.asarray(G0, dtype=np.float64)
 
     def attempt(radius: float) -> float:
-        problem = PlanarRegistration(reference, roi=roi, mask=mask, config=replace(config, defocus_px=radius))
+        problem = PlanarRegistration.prepare(reference, roi=roi, mask=mask, config=replace(config, defocus_px=radius))
         best = _best(runs)
         if best is None:
             result = problem.run(current, G0=start)

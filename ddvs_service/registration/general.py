@@ -31,23 +31,35 @@ Update at pyramid level l (level pixels, `D_l` of `images`): `G_l ← M G_l`, `e
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import sl3_exp
-from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
+from ddvs_service.registration.config import ROBUST_CODES
 from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.general_config import (
+    FLAG_AMBIGUOUS,
+    FLAG_DIVERGED,
+    FLAG_NO_PARALLAX,
+    FLAG_OCCLUSION,
+    GeneralConfig,
+)
+from ddvs_service.registration.general_result import GeneralResult, flags_for, warp_homogeneous
 from ddvs_service.registration.images import F32
-from ddvs_service.registration.planar import (
-    DEGENERATE_RCOND,
-    MAD_TO_SIGMA,
-    PlanarRegistration,
-    Roi,
-    remaining_motion,
+from ddvs_service.registration.layout import ParamLayout
+from ddvs_service.registration.planar import PlanarRegistration
+from ddvs_service.registration.reference import CurrentPyramid, Level, PreparedReference, Roi
+from ddvs_service.registration.solver import (
+    LevelOutcome,
+    NormalEquations,
+    Reduced,
+    coarse_to_fine,
+    gauss_newton,
+    in_sequence,
     symmetric_index,
+    with_inliers,
 )
 from ddvs_service.registration.spline_window import UNRESTRICTED, SplineWindow
 from kernels.launch import Prepared
@@ -58,139 +70,7 @@ START_DIRECTIONS = np.array(
     [[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1], [-1, 0, 1], [0, 1, 1], [0, -1, 1]],
     dtype=np.float64,
 )
-
-FLAG_NO_PARALLAX = "no_parallax"  # parallax below detection: planar target or too little translation; ρ* := 0
-FLAG_AMBIGUOUS = "ambiguous_parallax"  # a different parallax field fits almost as well
-FLAG_LOW_TEXTURE = "low_texture"  # degenerate normal equations
-FLAG_OCCLUSION = "occlusion"  # too few inliers / too little of the ROI visible
-FLAG_LOST = "lost"  # the tracker lost the target and will re-acquire on the next frame
-FLAG_DIVERGED = "diverged"
 SPLINE_MARGIN = 0.1  # B-spline window margin around the warped ROI, × the ROI's larger side (`spline_window`)
-
-
-@dataclass(frozen=True)
-class GeneralConfig:
-    """Settings of the general registration.
-
-    - `base`: the planar engine's settings (pyramid, iterations, gain grid, robust loss, tolerances), shared.
-    - `rho_degree`: 2 (biquadratic, 6 coefficients) or 3 (bicubic, 13).
-    - `estimate_levels`: pyramid levels (finest first) on which ρ* is estimated from the planar solution.
-    - `min_parallax_px`: RMS parallax displacement over the ROI below which ρ* is declared unobserved (set to 0).
-    - `min_parallax_snr`: the parallax must also exceed this many standard errors.
-    - `min_margin`: relative cost gap to a different parallax solution below which the result is flagged ambiguous.
-    - `distinct_epipole_deg`: two solutions whose epipole directions differ by more than this are different.
-    - `lost_after`: consecutive failed frames after which the tracker declares LOST and re-acquires.
-    - `interpolation`: how the full-resolution steps sample the current image, "bspline" (the interpolating cubic
-      B-spline, `kernels.bspline`; coarser levels keep Keys) or "keys" (Keys' cubic convolution). Near the paper's
-      equilibrium the warp must be right to ~0.002 px for the control error (16) to be within 1e-4; there Keys' own
-      error dominates the residual. Worst error of (16) along the paper's trajectory, × the criterion's tolerance
-      (benchmarks/general_accuracy.py): anti-aliased frames (texture blurred by 2 texels, 4×4 rays per pixel)
-      0.80 with the B-spline vs 2.71 with Keys; frames with a 0.7 px optical blur 1.80 vs 5.0; point-sampled
-      (aliased) frames 8.7 vs 13.3, but 1.05 vs 0.76 on their first 180 images. The B-spline's prefilter, only over
-      a window around the warped ROI (`spline_window`; the whole 550×418 image took ~0.7 ms), brings a tracking
-      frame from 1.3–1.8 ms (Keys) to 2.2 ms on 2 cores.
-    """
-
-    base: RegistrationConfig = field(default_factory=RegistrationConfig)
-    rho_degree: int = 2
-    estimate_levels: int = 2
-    min_parallax_px: float = 0.05
-    min_parallax_snr: float = 10.0
-    min_margin: float = 0.002
-    distinct_epipole_deg: float = 20.0
-    lost_after: int = 3
-    interpolation: Literal["keys", "bspline"] = "bspline"
-
-    def __post_init__(self) -> None:
-        if self.rho_degree not in (2, 3):
-            raise ValueError(f"rho_degree must be 2 or 3, got {self.rho_degree}")
-        if self.estimate_levels < 1:
-            raise ValueError(f"estimate_levels must be ≥ 1, got {self.estimate_levels}")
-        if not self.min_parallax_px >= 0.0 or not self.min_parallax_snr >= 0.0:
-            raise ValueError("min_parallax_px and min_parallax_snr must be ≥ 0")
-        if self.lost_after < 1:
-            raise ValueError(f"lost_after must be ≥ 1, got {self.lost_after}")
-        if self.interpolation not in ("keys", "bspline"):
-            raise ValueError(f"interpolation must be 'keys' or 'bspline', got {self.interpolation!r}")
-
-
-@dataclass
-class GeneralResult:
-    """Estimate of eq. (2)+(4) for one frame.
-
-    - `G` (3×3, det 1) and `e` (3, same scale as `G`): reference pixels → current pixels, `p ∝ G p* + ρ*(p*) e`.
-    - `rho_coeffs`: ρ* coefficients in `basis` (gauge of the module docstring); `rho_at(p)` evaluates ρ*.
-    - `rho_information`: Fisher information of `rho_coeffs` given `e` (accumulated over the frames by the tracker),
-      `(JᵀWJ)/σ²` with the other unknowns marginalised; `parallax_px`: RMS over the ROI of the displacement due to
-      `ρ* e` in this frame; `margin`: relative cost gap to the best different parallax field (estimation frames).
-    - `S`, `beta`, `iterations`, `residual_rms`, `inlier_ratio`, `scale` as the planar `RegistrationResult`.
-    - `converged`, `reason` and `flags` (`FLAG_*`): what went wrong, never silent.
-    """
-
-    G: F64
-    e: F64
-    rho_coeffs: F64
-    basis: ParallaxBasis
-    S: F64
-    beta: float
-    rho_information: F64
-    parallax_px: float = 0.0
-    margin: float = float("nan")
-    iterations: list[int] = field(default_factory=list)
-    residual_rms: float = float("nan")
-    inlier_ratio: float = 0.0
-    scale: float = float("nan")
-    converged: bool = False
-    reason: str = ""
-    flags: list[str] = field(default_factory=list)
-
-    @property
-    def H(self) -> F64:
-        """`G` normalised so that `H[2, 2] = 1`."""
-        return self.G / self.G[2, 2]
-
-    def rho_at(self, p: ArrayLike) -> float:
-        """ρ* at one reference pixel `p = (u, v)` (e.g. the control point), gauge units."""
-        return float(self.basis.rho(self.rho_coeffs, np.asarray(p, dtype=np.float64).reshape(1, 2))[0])
-
-    def warp(self, p: ArrayLike) -> F64:
-        """Current pixels (N × 2) of reference pixels `p` (N × 2) under eq. (2)."""
-        return warp_points(self.G, self.e, self.basis, self.rho_coeffs, p)
-
-    def rho_std(self) -> F64:
-        """Standard errors of `rho_coeffs` (inf where the information is singular)."""
-        return _std_from_information(self.rho_information)
-
-    def to_json_dict(self) -> dict[str, Any]:
-        """Plain-JSON view of the estimate and its status."""
-        return {
-            "H": self.H.tolist(), "G": self.G.tolist(), "e": self.e.tolist(), "rho_coeffs": self.rho_coeffs.tolist(),
-            "rho_degree": self.basis.degree, "rho_std": [float(x) for x in self.rho_std()],
-            "parallax_px": float(self.parallax_px), "margin": float(self.margin),
-            "S": np.asarray(self.S).tolist(), "beta": float(self.beta), "iterations": [int(i) for i in self.iterations],
-            "residual_rms": float(self.residual_rms), "inlier_ratio": float(self.inlier_ratio),
-            "scale": float(self.scale), "converged": bool(self.converged), "reason": self.reason, "flags": self.flags,
-        }
-
-
-def _std_from_information(info: F64) -> F64:
-    w, V = np.linalg.eigh(info)
-    inv_w = np.where(w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300), 1.0 / np.maximum(w, 1e-300), np.inf)
-    with np.errstate(invalid="ignore"):
-        var = (V**2) @ inv_w
-    return np.sqrt(np.where(np.isnan(var), np.inf, var))
-
-
-def warp_points(G: F64, e: F64, basis: ParallaxBasis, coeffs: F64, p: ArrayLike) -> F64:
-    """`π(G p* + ρ*(p*) e)` for reference pixels `p` (N × 2), full resolution."""
-    q = np.asarray(p, dtype=np.float64).reshape(-1, 2)
-    return _warp(np.c_[q, np.ones(len(q))], basis.rho(coeffs, q), G, e)
-
-
-def _warp(p_h: F64, rho: F64, G: F64, e: F64) -> F64:
-    """Eq. (2) dehomogenised, `π(G p* + ρ* e)`, for homogeneous reference pixels `p_h` (N × 3) and their ρ* (N)."""
-    P = p_h @ G.T + np.outer(rho, e)
-    return P[:, :2] / P[:, 2:3]
 
 
 @dataclass
@@ -220,25 +100,31 @@ class GeneralRegistration:
 
     def __init__(
         self,
-        reference: ArrayLike,
-        roi: Roi | None = None,
-        mask: ArrayLike | None = None,
-        config: GeneralConfig = GeneralConfig(),
+        prepared: PreparedReference,
+        config: GeneralConfig = GeneralConfig(),  # noqa: B008 - frozen, immutable default
+        current: CurrentPyramid | None = None,
     ) -> None:
-        from kernels.general_step import params_size
+        from kernels.general_step import n_columns, params_size
 
         self.config = config
-        self.planar = PlanarRegistration(reference, roi=roi, mask=mask, config=config.base)
-        self.roi = self.planar.roi
-        self.levels = self.planar.levels
-        self.reference = self.planar.reference
+        self.planar = PlanarRegistration(prepared, config.base, current)
+        self.prepared = prepared
+        self.current = self.planar.current
+        self.roi = prepared.roi
+        self.levels = prepared.levels
+        self.reference = prepared.pyramid
         self.grid = self.planar.grid
         self.basis = ParallaxBasis.over(self.roi, config.rho_degree)
+        self.layouts = {with_rho: ParamLayout.general(*self.grid, self.basis.size if with_rho else 0)
+                        for with_rho in (False, True)}
+        if any(layout.size != n_columns(self.basis.size, with_rho, *self.grid)
+               for with_rho, layout in self.layouts.items()):
+            raise AssertionError("parameter layout and kernel column order disagree")
         self._params = np.zeros(params_size(self.basis.size), dtype=np.float32)
         self._work: dict[int, NDArray[np.float32]] = {}
         self._sym: dict[int, NDArray[np.intp]] = {}
         self._steps: dict[tuple[int, bool], tuple[F32, Prepared]] = {}  # prepared launches, with their `cur`
-        self._spline = (SplineWindow(self.planar.shape, SPLINE_MARGIN * max(self.roi[2], self.roi[3]))
+        self._spline = (SplineWindow(prepared.shape, SPLINE_MARGIN * max(self.roi[2], self.roi[3]))
                         if config.interpolation == "bspline" else None)
         x, y, w, h = self.roi
         u, v = np.meshgrid(np.linspace(x, x + w - 1, 16), np.linspace(y, y + h - 1, 12))
@@ -246,6 +132,17 @@ class GeneralRegistration:
         self._probe = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
         self._probe_phi = self.basis.values(self._probe[:, :2])
         self.N0 = self.levels[0].N
+
+    @classmethod
+    def prepare(
+        cls,
+        reference: ArrayLike,
+        roi: Roi | None = None,
+        mask: ArrayLike | None = None,
+        config: GeneralConfig = GeneralConfig(),  # noqa: B008 - frozen, immutable default
+    ) -> GeneralRegistration:
+        """An engine on its own `PreparedReference.prepare(reference, roi, mask, config.base)`."""
+        return cls(PreparedReference.prepare(reference, roi=roi, mask=mask, config=config.base), config)
 
     # ----------------------------------------------------------------------------------------------- public
 
@@ -256,24 +153,21 @@ class GeneralRegistration:
         if not planar.converged or not np.all(np.isfinite(planar.G)):
             return self._failed(_State(planar.G if np.all(np.isfinite(planar.G)) else np.eye(3), np.zeros(3),
                                        np.zeros(self.basis.size), planar.S, planar.beta, None),
-                                f"planar stage failed: {planar.reason}", _flags_for(planar.reason))
+                                f"planar stage failed: {planar.reason}", flags_for(planar.reason))
         pyramid = self._load_current(current, len(self.levels))
-        levels = list(reversed(self.levels[: self.config.estimate_levels]))
+        levels = self.levels[: self.config.estimate_levels]
         solutions: list[tuple[_State, list[int], bool, str]] = []
         for direction in START_DIRECTIONS:
             state = _State(planar.G.copy(), np.linalg.solve(self.N0, direction / np.linalg.norm(direction)),
                            np.zeros(self.basis.size), planar.S.copy(), planar.beta, planar.scale)
-            iterations, converged, reason, failed = [], False, "", False
-            for level in levels:
-                n1, _, reason, failed = self._solve(level, pyramid, state, free_e=False, free_rho=True)
-                if failed:
-                    break
-                n2, converged, reason, failed = self._solve(level, pyramid, state, free_e=True, free_rho=True)
-                iterations.append(n1 + n2)
-                if failed:
-                    break
-            if not failed:
-                solutions.append((state, iterations, converged, reason))
+
+            def solve(level: Level, state: _State = state) -> LevelOutcome:
+                return in_sequence(lambda: self._solve(level, pyramid, state, free_e=False, free_rho=True),
+                                   lambda: self._solve(level, pyramid, state, free_e=True, free_rho=True))
+
+            outcome = coarse_to_fine(levels, solve)
+            if not outcome.failed:
+                solutions.append((state, outcome.iterations, outcome.converged, outcome.reason))
         if not solutions:
             return self._failed(_State(planar.G, np.zeros(3), np.zeros(self.basis.size), planar.S, planar.beta,
                                        planar.scale), "every parallax start failed", [FLAG_DIVERGED])
@@ -282,8 +176,8 @@ class GeneralRegistration:
         rival = next((s for s, *_ in solutions[1:] if self._epipole_angle(best, s) > self.config.distinct_epipole_deg),
                      None)
         margin = (rival.cost - best.cost) / best.cost if rival is not None else float("inf")
-        H, _, _ = self._normal_equations(self.levels[0], pyramid[0], best, with_rho=True)
-        info = self._rho_information(H, best.scale)
+        equations = self._normal_equations(self.levels[0], pyramid[0], best, with_rho=True)
+        info = self._rho_information(equations.H, best.scale)
         result = self._result(best, [*planar.iterations, *iterations], converged, reason, info)
         result.margin = margin
         self._check_parallax(result, best)
@@ -312,21 +206,17 @@ class GeneralRegistration:
         _normalise(state)
         free_e = bool(np.any(state.c != 0.0))
         information = free_e and self._observed(state)
-        iterations: list[int] = []
-        converged, reason = False, ""
-        for level in reversed(levels):
-            n, converged, reason, failed = self._solve(level, pyramid, state, free_e=free_e, free_rho=False,
-                                                       tolerance_px=tolerance_px, information=information)
-            iterations.append(n)
-            if failed:
-                return self._failed(state, reason, _flags_for(reason), iterations)
+        outcome = coarse_to_fine(levels, lambda level: self._solve(
+            level, pyramid, state, free_e=free_e, free_rho=False, tolerance_px=tolerance_px, information=information))
+        if outcome.failed:
+            return self._failed(state, outcome.reason, flags_for(outcome.reason), outcome.iterations)
         observed = state.information is not None and self._observed(state)
-        info = state.information if observed else np.zeros((self.basis.size,) * 2)
-        return self._result(state, iterations, converged, reason, info)
+        info = state.information if observed and state.information is not None else np.zeros((self.basis.size,) * 2)
+        return self._result(state, outcome.iterations, outcome.converged, outcome.reason, info)
 
     # --------------------------------------------------------------------------------------------- internals
 
-    def _fill(self, level: Any, G_l: F64, e_l: F64, state: _State) -> None:
+    def _fill(self, level: Level, G_l: F64, e_l: F64, state: _State) -> None:
         from kernels import general_step as k
 
         p = self._params
@@ -335,8 +225,8 @@ class GeneralRegistration:
         p[k.PARAMS_NORM : k.PARAMS_NORM + 3] = level.norm
         p[k.PARAMS_BNORM : k.PARAMS_BNORM + 3] = self.basis.level_norm(level.D)
         p[k.PARAMS_ROI : k.PARAMS_ROI + 4] = level.bounds
-        spline = level.index == 0 and self._spline is not None and self._spline.domain is not None
-        p[k.PARAMS_DOMAIN : k.PARAMS_DOMAIN + 4] = self._spline.domain if spline else UNRESTRICTED
+        domain = self._spline.domain if level.index == 0 and self._spline is not None else None
+        p[k.PARAMS_DOMAIN : k.PARAMS_DOMAIN + 4] = UNRESTRICTED if domain is None else domain
         p[k.PARAMS_SPAN : k.PARAMS_SPAN + 4] = level.span
         p[k.PARAMS_BETA] = state.beta
         p[k.PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
@@ -358,15 +248,16 @@ class GeneralRegistration:
         return self.planar.load_current(current, n_levels)
 
     def _normal_equations(
-        self, level: Any, cur: F32, state: _State, with_rho: bool
-    ) -> tuple[F64, F64, NDArray[np.float64]]:
-        """One kernel launch at the state on the current level image `cur`: (JᵀWJ, JᵀWr, [n_valid, n_inliers, Σr²,
-        median |r|]). With `config.interpolation` "bspline", level 0 is sampled through the B-spline coefficients of
-        `cur` over a window around the ROI warped by the state (`spline_window`; samples outside its exact domain
-        count as invalid). The launch is prepared once per (level, `with_rho`, buffer) (`kernels.launch.Prepared`)."""
-        from kernels.general_step import general_step, n_acc, n_columns, work_size
+        self, level: Level, cur: F32, state: _State, with_rho: bool
+    ) -> NormalEquations:
+        """One kernel launch at the state on the current level image `cur`: JᵀWJ, JᵀWr and the residual statistics
+        over the columns of `layouts[with_rho]`. With `config.interpolation` "bspline", level 0 is sampled through
+        the B-spline coefficients of `cur` over a window around the ROI warped by the state (`spline_window`; samples
+        outside its exact domain count as invalid). The launch is prepared once per (level, `with_rho`, buffer)
+        (`kernels.launch.Prepared`)."""
+        from kernels.general_step import general_step, n_acc, work_size
 
-        n = n_columns(self.basis.size, with_rho, *self.grid)
+        n = self.layouts[with_rho].size
         if n not in self._work:
             self._work[n] = np.zeros(work_size(n), dtype=np.float32)
             self._sym[n] = symmetric_index(n)
@@ -383,95 +274,32 @@ class GeneralRegistration:
                                               *self.grid, spline))
         self._fill(level, level.D @ state.G @ level.D_inv, level.D @ state.e, state)
         self._steps[key][1]()
-        acc = self._work[n][: n_acc(n)].astype(np.float64)
-        nt = n * (n + 1) // 2
-        return acc[self._sym[n]], acc[nt : nt + n], acc[nt + n :]
+        return NormalEquations.unpack(self._work[n][: n_acc(n)], n, self._sym[n])
 
     def _solve(
-        self, level: Any, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool,
+        self, level: Level, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool,
         tolerance_px: float | None = None, information: bool = False,
-    ) -> tuple[int, bool, str, bool]:
-        """Gauss-Newton at one level; returns (iterations, converged, reason, fatal failure). Converged: the probe
-        points' motion still to come (`planar.remaining_motion`: the geometric tail of the last contractions of the
-        steps, as the planar engine) is below `tolerance_px` (full resolution; `step_tolerance_px` by default) at
-        the finest level, below `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next
-        level). `information` (ρ* fixed): the first finest-level launch also carries the ρ* columns; their
-        information goes to `state.information`, and they are dropped from that step."""
+    ) -> LevelOutcome:
+        """Gauss-Newton (`solver.gauss_newton`) at one level. Converged: the probe points' motion still to come is
+        below `tolerance_px` (full resolution; `step_tolerance_px` by default) at the finest level, below
+        `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level). `information`
+        (ρ* fixed): the first finest-level launch also carries the ρ* columns; their information goes to
+        `state.information`, and they are dropped from that step."""
         cfg = self.config.base
         fine = cfg.step_tolerance_px if tolerance_px is None else tolerance_px
         tolerance = fine if level.index == 0 else cfg.coarse_step_tolerance_px
-        nr = self.basis.size if free_rho else 0
-        ng = self.grid[0] * self.grid[1]
-        D, D_inv, N, N_inv = level.D, level.D_inv, level.N, level.N_inv
-        tracked = np.r_[0:11, 11 + self.basis.size : 11 + self.basis.size + ng + 1]  # columns without ρ*
-        e_sl = slice(8, 11)
-        steps: list[float] = []
-        for it in range(1, cfg.max_iterations + 1):
-            with_information = information and not free_rho and level.index == 0 and it == 1
-            H, g, stats = self._normal_equations(level, pyramid[level.index], state, free_rho or with_information)
-            n_valid, n_inliers, sum_r2, median = stats
-            if n_valid < cfg.min_valid_ratio * level.n_pixels:
-                return it, False, (f"diverged at level {level.index}: only {n_valid / level.n_pixels:.0%} of the ROI "
-                                   f"maps inside the current image (min_valid_ratio {cfg.min_valid_ratio:.0%})"), True
-            state.residual_rms = math.sqrt(sum_r2 / n_valid)
-            state.cost = sum_r2 / n_valid
-            state.inlier_ratio = min(1.0, n_inliers / level.n_pixels) if state.scale is not None else 1.0
-            state.scale = max(MAD_TO_SIGMA * median, cfg.scale_floor)
-            if with_information:
-                state.information = self._rho_information(H, state.scale)
-                H, g = H[np.ix_(tracked, tracked)], g[tracked]
-            T = np.eye(len(g))
-            if not free_e:
-                T = np.delete(T, [8, 9, 10], axis=1)
-            elif free_rho:  # scale gauge: δe' orthogonal to N e (module docstring)
-                d = N @ D @ state.e
-                basis = np.linalg.svd(d.reshape(1, 3))[2][1:].T  # 3×2, orthonormal complement of d
-                E = np.zeros((len(g), 2))
-                E[e_sl] = basis
-                T = np.hstack([T[:, :8], E, T[:, 11:]])
-            Hr = T.T @ H @ T
-            gr = T.T @ g
-            dg = np.diag(Hr)
-            if not np.all(dg > 0):
-                return it, False, f"degenerate normal equations at level {level.index} (textureless ROI?)", True
-            Hn = Hr / np.sqrt(np.outer(dg, dg))
-            eig = np.linalg.eigvalsh(Hn)
-            if not eig[0] > DEGENERATE_RCOND * eig[-1]:
-                return it, False, (f"degenerate normal equations at level {level.index} (textureless ROI?): "
-                                   f"reciprocal condition {eig[0] / eig[-1]:.1e}"), True
-            delta = T @ np.linalg.solve(Hr, -gr)
-            if not np.all(np.isfinite(delta)):
-                return it, False, f"non-finite update at level {level.index}", True
-            before = self._probe_warp(state.G, state.e, state.c)
-            new = self._apply(state, delta, D, D_inv, N, N_inv, nr, ng, 1.0)
-            step_px = float(np.max(np.abs(self._probe_warp(new.G, new.e, new.c) - before)))
-            step = step_px * D[0, 0]  # level pixels
-            limit = cfg.max_step_fraction * level.size
-            if not step <= limit:
-                factor = limit / step if math.isfinite(step) else 0.0
-                new = self._apply(state, delta, D, D_inv, N, N_inv, nr, ng, factor)
-            state.G, state.e, state.c, state.gains, state.beta = new.G, new.e, new.c, new.gains, new.beta
-            if free_rho and free_e:
-                self._fix_scale(state)
-            steps.append(step)
-            remaining = remaining_motion(steps)
-            if remaining < tolerance:
-                return it, True, (f"converged: last step {step:.1e} px, at most {remaining:.1e} px left "
-                                  f"< {tolerance:g} px"), False
-        return cfg.max_iterations, False, f"max_iterations ({cfg.max_iterations}) reached at level {level.index}", False
+        model = _GeneralLevel(self, level, pyramid[level.index], state, free_e, free_rho, information)
+        return gauss_newton(model, state, cfg, level.index, level.n_pixels, level.size, tolerance)
 
-    def _apply(
-        self, state: _State, delta: F64, D: F64, D_inv: F64, N: F64, N_inv: F64, nr: int, ng: int, factor: float
-    ) -> _State:
-        """The state after the update `factor · delta` (module docstring), normalised to det G = 1."""
-        d = factor * delta
-        M = N_inv @ sl3_exp(d[:8]) @ N
-        G_l = M @ D @ state.G @ D_inv
-        e_l = M @ D @ state.e + N_inv @ d[8:11]
-        c = state.c + d[11 : 11 + nr] if nr else state.c.copy()
-        off = 11 + nr
-        new = _State(D_inv @ G_l @ D, D_inv @ e_l, c, state.gains + d[off : off + ng].reshape(self.grid),
-                     state.beta + float(d[off + ng]), state.scale)
+    def _apply(self, state: _State, delta: F64, level: Level, layout: ParamLayout) -> _State:
+        """The state after the update `delta` (in `layout`; module docstring), normalised to det G = 1."""
+        d = layout.split(delta)
+        M = level.N_inv @ sl3_exp(d["G"]) @ level.N
+        G_l = M @ level.D @ state.G @ level.D_inv
+        e_l = M @ level.D @ state.e + level.N_inv @ d["e"]
+        c = state.c + d["rho"] if d["rho"].size else state.c.copy()
+        new = _State(level.D_inv @ G_l @ level.D, level.D_inv @ e_l, c, state.gains + d["S"].reshape(self.grid),
+                     state.beta + float(d["beta"][0]), state.scale)
         _normalise(new)
         return new
 
@@ -485,9 +313,9 @@ class GeneralRegistration:
     def _rho_information(self, H: F64, sigma: float | None) -> F64:
         """Information on the ρ* coefficients given `e`, from the normal equations `H` of a launch with the ρ*
         columns: Schur complement of `H` over the other unknowns except `e`, divided by σ²."""
+        layout = self.layouts[True]
         nr = self.basis.size
-        rho = np.arange(11, 11 + nr)
-        other = np.r_[np.arange(8), np.arange(11 + nr, H.shape[0])]
+        rho, other = layout.indices("rho"), layout.indices("G", "S", "beta")
         Hoo = H[np.ix_(other, other)]
         Hro = H[np.ix_(rho, other)]
         try:
@@ -499,7 +327,7 @@ class GeneralRegistration:
 
     def _probe_warp(self, G: F64, e: F64, c: F64) -> F64:
         """`warp_points` at the probe points (full resolution), with the basis values there precomputed."""
-        return _warp(self._probe, self._probe_phi @ c, G, e)
+        return warp_homogeneous(self._probe, self._probe_phi @ c, G, e)
 
     def _observed(self, state: _State) -> bool:
         """Whether the parallax `ρ* e` of `state` reaches `min_parallax_px` RMS (probe points)."""
@@ -532,12 +360,9 @@ class GeneralRegistration:
     def _result(
         self, state: _State, iterations: list[int], converged: bool, reason: str, info: F64
     ) -> GeneralResult:
-        flags: list[str] = []
-        cfg = self.config.base
-        if converged and state.inlier_ratio < cfg.min_inlier_ratio:
-            converged = False
-            reason = f"inlier ratio {state.inlier_ratio:.3f} below min_inlier_ratio {cfg.min_inlier_ratio} (occlusion?)"
-            flags.append(FLAG_OCCLUSION)
+        checked, reason = with_inliers(converged, reason, state.inlier_ratio, self.config.base)
+        flags = [FLAG_OCCLUSION] if converged and not checked else []
+        converged = checked
         parallax = self._parallax_px(state.G, state.e, state.c)
         return GeneralResult(
             G=state.G, e=state.e, rho_coeffs=state.c.copy(), basis=self.basis, S=state.gains.copy(), beta=state.beta,
@@ -560,12 +385,56 @@ def _rms(x: F64) -> float:
     return float(np.sqrt(np.mean(x**2)))
 
 
-def _flags_for(reason: str) -> list[str]:
-    """Failure flags from a reason string of the planar or general solver."""
-    if "degenerate" in reason:
-        return [FLAG_LOW_TEXTURE]
-    if "inlier" in reason:
-        return [FLAG_OCCLUSION]
-    if "diverged" in reason or "non-finite" in reason:
-        return [FLAG_DIVERGED]
-    return []
+class _GeneralLevel:
+    """The general model at one level (`solver.LevelModel`): `G`, `e` (and ρ* when `free_rho`) in full-resolution
+    pixels; the step is the largest motion of the probe points (level pixels)."""
+
+    check_every_iteration = True
+
+    def __init__(self, engine: GeneralRegistration, level: Level, cur: F32, state: _State, free_e: bool,
+                 free_rho: bool, information: bool) -> None:
+        self.engine, self.level, self.cur, self.state = engine, level, cur, state
+        self.free_e, self.free_rho, self.information = free_e, free_rho, information
+        self.layout = engine.layouts[free_rho]
+        self._with_information = False
+
+    def normal_equations(self, iteration: int) -> NormalEquations:
+        self._with_information = (self.information and not self.free_rho and self.level.index == 0
+                                  and iteration == 1)
+        return self.engine._normal_equations(self.level, self.cur, self.state,
+                                             self.free_rho or self._with_information)
+
+    def reduce(self, equations: NormalEquations, iteration: int) -> Reduced:
+        """The columns of `layout` (the ρ* columns of an information launch dropped after their information is
+        kept), with `e` fixed (`free_e` False) or, with ρ* free, `δe'` orthogonal to `N e` (scale gauge, module
+        docstring)."""
+        H, g = equations.H, equations.g
+        if self._with_information:
+            self.state.information = self.engine._rho_information(H, self.state.scale)
+            tracked = self.engine.layouts[True].indices("G", "e", "S", "beta")
+            H, g = H[np.ix_(tracked, tracked)], g[tracked]
+        e = self.layout.slice("e")
+        T = np.eye(len(g))
+        if not self.free_e:
+            T = np.delete(T, np.arange(e.start, e.stop), axis=1)
+        elif self.free_rho:
+            d = self.level.N @ self.level.D @ self.state.e
+            basis = np.linalg.svd(d.reshape(1, 3))[2][1:].T  # 3×2, orthonormal complement of d
+            E = np.zeros((len(g), 2))
+            E[e] = basis
+            T = np.hstack([T[:, : e.start], E, T[:, e.stop :]])
+        return Reduced(T.T @ H @ T, T.T @ g, lambda x: T @ x)
+
+    def trial(self, delta: F64) -> tuple[_State, float]:
+        engine, state = self.engine, self.state
+        before = engine._probe_warp(state.G, state.e, state.c)
+        new = engine._apply(state, delta, self.level, self.layout)
+        step_px = float(np.max(np.abs(engine._probe_warp(new.G, new.e, new.c) - before)))
+        return new, step_px * self.level.D[0, 0]
+
+    def accept(self, candidate: _State) -> None:
+        state = self.state
+        state.G, state.e, state.c, state.gains, state.beta = (candidate.G, candidate.e, candidate.c, candidate.gains,
+                                                              candidate.beta)
+        if self.free_rho and self.free_e:
+            self.engine._fix_scale(state)

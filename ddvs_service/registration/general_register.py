@@ -1,25 +1,19 @@
-"""The general model's entry points that need the global initialiser: a one-shot registration (`register_general`)
-and the global start of a cold registration (`global_start`). Kept apart from the engine (`registration.general`),
-which the initialiser itself uses for its step 5, so that neither module imports the other."""
+"""The general model's one-shot registration (`register_general`), started by the global initialiser when no start
+is given. Kept apart from the engine (`registration.general`), which the initialiser itself uses for its step 5, so
+that neither module imports the other."""
 
 from __future__ import annotations
-
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ddvs_service.registration.general import (
-    F64,
-    FLAG_LOST,
-    GeneralConfig,
-    GeneralRegistration,
-    GeneralResult,
-    _State,
-)
-from ddvs_service.registration.global_init import GlobalInitializer, PlanarRefiner
-from ddvs_service.registration.images import F32, checked_grey
-from ddvs_service.registration.planar import Roi
+from ddvs_service.registration.general import GeneralRegistration, _State
+from ddvs_service.registration.general_config import FLAG_LOST, GeneralConfig
+from ddvs_service.registration.general_result import GeneralResult
+from ddvs_service.registration.global_init import GlobalInitConfig
+from ddvs_service.registration.images import checked_grey
+from ddvs_service.registration.reacquisition import Reacquisition
+from ddvs_service.registration.reference import Roi
 
 
 def register_general(
@@ -40,7 +34,7 @@ def register_general(
     Raises ValueError on bad input; a failed registration is reported in the result (`converged`, `reason`, `flags`).
     """
     config = config or GeneralConfig()
-    problem = GeneralRegistration(reference, roi=roi, mask=mask, config=config)
+    problem = GeneralRegistration.prepare(reference, roi=roi, mask=mask, config=config)
     cur = checked_grey(current, "current")
     if cur.shape != problem.planar.shape:
         raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
@@ -48,7 +42,7 @@ def register_general(
     start = None if G0 is None else np.asarray(G0, dtype=np.float64).reshape(3, 3)
     if rho0 is None:
         if start is None:
-            start = global_start(problem, cur)
+            start = Reacquisition(problem.planar, problem, GlobalInitConfig())(cur).G
             if start is None:
                 return problem._failed(_State(np.eye(3), np.zeros(3), np.zeros(problem.basis.size),
                                               np.ones(problem.grid), 0.0, None),
@@ -62,11 +56,3 @@ def register_general(
         raise ValueError("G0 is required with rho0 (tracking from a known parallax field)")
     e = np.zeros(3) if e0 is None else np.asarray(e0, dtype=np.float64).reshape(3)
     return problem.track(cur, start, e, rho)
-
-
-def global_start(problem: GeneralRegistration, current: F32) -> F64 | None:
-    """`G` from the global initialiser (planar refinement), None when it reports LOST."""
-    ref = problem.reference[0]
-    init = GlobalInitializer(refiner_factory=lambda r, roi: PlanarRefiner(r, roi, config=replace(problem.config.base)))
-    found = init.initialize(ref, problem.roi, current)
-    return found.G

@@ -1,7 +1,9 @@
 """Stateful general tracker: eq. (2) `p ∝ G p* + ρ*(p*) e` through a video stream, ρ* kept in the reference frame.
 
-- First frame (or after LOST): `G` from the global initialiser; when no ρ* is known yet it is estimated on that
-  frame (several epipole starts, `general.GeneralRegistration.estimate`), else `e` restarts from 0 with ρ* kept.
+- First frame (or after LOST): `G` from the re-acquisition (`reacquisition.Reacquisition`: the global initialiser
+  on this tracker's engine; when it is off, the last good `G`, identity at first); when no ρ* is known yet it is
+  estimated on that frame (several epipole starts, `general.GeneralRegistration.estimate`), else `e` restarts from
+  0 with ρ* kept.
 - Every other frame: `G`, `e`, `S`, `β` warm-started from the last good frame, ρ* held fixed (13 unknowns with one
   gain), so ρ* cannot drift when the camera stops translating (`e → 0`). Like the planar `Tracker`, the frame is
   solved on the finest `tracking_levels` pyramid levels first, from the constant-velocity prediction when
@@ -22,44 +24,55 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ddvs_service.registration.general import (
-    FLAG_DIVERGED,
-    FLAG_LOST,
-    GeneralConfig,
-    GeneralRegistration,
-    GeneralResult,
-)
+from ddvs_service.registration.general import GeneralRegistration
 from ddvs_service.registration.general_basis import ParallaxBasis
-from ddvs_service.registration.general_register import global_start
+from ddvs_service.registration.general_config import FLAG_DIVERGED, FLAG_LOST, GeneralConfig
+from ddvs_service.registration.general_result import GeneralResult
+from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.images import checked_grey
-from ddvs_service.registration.planar import Roi
+from ddvs_service.registration.reacquisition import Reacquisition
+from ddvs_service.registration.reference import Roi
 
 F64 = NDArray[np.float64]
 
 
 class GeneralTracker:
-    """Track the ROI of `reference` (same face as the planar `Tracker`). `rho` optionally gives known ρ*
-    coefficients (`ParallaxBasis` of `config.rho_degree`), e.g. from an earlier session."""
+    """Track the ROI of the engine's reference (same face as the planar `Tracker`). `acquire`: how the first frame
+    and a frame after LOST are started (the global initialiser with its default settings, on this engine, when
+    None). `rho` optionally gives known ρ* coefficients (`ParallaxBasis` of `config.rho_degree`), e.g. from an
+    earlier session."""
 
     def __init__(
         self,
-        reference: ArrayLike,
-        roi: Roi | None = None,
-        config: GeneralConfig = GeneralConfig(),  # noqa: B008 - frozen, immutable default
-        mask: ArrayLike | None = None,
+        engine: GeneralRegistration,
+        acquire: Reacquisition | None = None,
         rho: ArrayLike | None = None,
     ) -> None:
-        self._problem = GeneralRegistration(reference, roi=roi, mask=mask, config=config)
+        self._problem = engine
+        self._acquire = acquire or Reacquisition(engine.planar, engine, GlobalInitConfig())
         n = self._problem.basis.size
         self._rho: F64 | None = None if rho is None else np.asarray(rho, dtype=np.float64).reshape(n).copy()
         self._information = np.zeros((n, n))
         self._G: F64 | None = None  # None: (re)acquire globally on the next frame
+        self._last_G = np.eye(3)  # the last good estimate, kept through LOST
         self._G_before: F64 | None = None  # the good estimate before `_G` (None: no velocity known)
         self._e = np.zeros(3)
         self._gains = np.ones(self._problem.grid)
         self._beta = 0.0
         self._scale: float | None = None
         self._failures = 0
+
+    @classmethod
+    def prepare(
+        cls,
+        reference: ArrayLike,
+        roi: Roi | None = None,
+        config: GeneralConfig = GeneralConfig(),  # noqa: B008 - frozen, immutable default
+        mask: ArrayLike | None = None,
+        rho: ArrayLike | None = None,
+    ) -> GeneralTracker:
+        """A tracker on its own engine (`GeneralRegistration.prepare`), re-acquiring with the default settings."""
+        return cls(GeneralRegistration.prepare(reference, roi=roi, mask=mask, config=config), rho=rho)
 
     @property
     def basis(self) -> ParallaxBasis:
@@ -93,6 +106,7 @@ class GeneralTracker:
         if not result.converged:
             return self._count_failure(result)
         self._G_before = self._G
+        self._last_G = result.G
         self._G, self._e, self._gains, self._beta = result.G, result.e, result.S, result.beta
         self._scale = result.scale if np.isfinite(result.scale) else None
         self._information = self._information + result.rho_information
@@ -103,7 +117,8 @@ class GeneralTracker:
     def _track(self, current: NDArray[np.float32]) -> GeneralResult:
         problem = self._problem
         if self._G is None:
-            G0 = global_start(problem, current)
+            acquisition = self._acquire(current)
+            G0 = self._last_G if acquisition.status == "OFF" else acquisition.G
             if G0 is None:
                 return self._failure("LOST: the global initialiser found no confident estimate", [FLAG_LOST])
             if self._rho is None:

@@ -42,7 +42,9 @@ from typing import Any, Literal, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ddvs_service.registration.general import GeneralConfig, GeneralRegistration
+from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.registration.general import GeneralRegistration
+from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.registration.global_cost import PhotometricScore, photometric_score, sample_at, sample_through
 from ddvs_service.registration.global_features import feature_homography
 from ddvs_service.registration.global_fourier_mellin import (
@@ -56,6 +58,7 @@ from ddvs_service.registration.global_fourier_mellin import (
     translation_hypotheses,
 )
 from ddvs_service.registration.global_screen import BatchScreen
+from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.warp_distance import rms_distance, roi_grid, roi_samples, warp_rms
 from kernels import backend
 
@@ -87,23 +90,21 @@ class Refiner(Protocol):
     def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]: ...
 
 
-RefinerFactory = Callable[[F32, Roi], Refiner]
+RefinerFactory = Callable[[PlanarRegistration], Refiner]
 
 
 class PlanarRefiner:
     """The planar direct engine (`registration.planar.PlanarRegistration`, coarse to fine) as a `Refiner`; a rival
     gets at most `rival_iterations` Gauss-Newton iterations per level (a correct start from the screening converges
-    in about 5)."""
+    in about 5), on the same prepared reference and workspace."""
 
-    def __init__(self, reference: F32, roi: Roi, config: Any = None, rival_iterations: int = 10) -> None:
-        from ddvs_service.registration.config import RegistrationConfig
-        from ddvs_service.registration.planar import PlanarRegistration
-
-        self.roi = roi
-        config = config or RegistrationConfig()
-        self.problem = PlanarRegistration(reference, roi=roi, config=config)
+    def __init__(self, engine: PlanarRegistration, rival_iterations: int = 10) -> None:
+        self.roi = engine.roi
+        config = engine.config
+        self.problem = engine
         self.rival_problem = PlanarRegistration(
-            reference, roi=roi, config=replace(config, max_iterations=min(rival_iterations, config.max_iterations)))
+            engine.prepared, replace(config, max_iterations=min(rival_iterations, config.max_iterations)),
+            engine.current)
 
     def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]:
         problem = self.rival_problem if rival else self.problem
@@ -117,17 +118,18 @@ class PlanarRefiner:
 
 class GeneralRefiner:
     """The general model of eq. (2) (`registration.general.GeneralRegistration.estimate`: planar refinement from
-    `G0`, then ρ* and e from several epipole directions) as a `Refiner`; its reference side is prepared on first
-    use. It solves its own `estimate_levels` (`first_level` and `rival` are not used) and returns nothing unless it
-    converged."""
+    `G0`, then ρ* and e from several epipole directions) as a `Refiner`: `engine`, or one built on first use on the
+    planar engine's prepared reference and workspace (`GeneralConfig` with the planar engine's settings). It solves
+    its own `estimate_levels` (`first_level` and `rival` are not used) and returns nothing unless it converged."""
 
-    def __init__(self, reference: F32, roi: Roi, config: Any = None) -> None:
-        self.reference, self.roi, self.config = reference, roi, config
-        self._problem: Any = None
+    def __init__(self, planar: PlanarRegistration, engine: GeneralRegistration | None = None) -> None:
+        self.planar, self.roi = planar, planar.roi
+        self._problem = engine
 
     def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]:
         if self._problem is None:
-            self._problem = GeneralRegistration(self.reference, roi=self.roi, config=self.config or GeneralConfig())
+            self._problem = GeneralRegistration(self.planar.prepared, GeneralConfig(base=self.planar.config),
+                                                self.planar.current)
         result = self._problem.estimate(current, G0)
         if not result.converged or not np.all(np.isfinite(result.G)):
             return []
@@ -239,25 +241,37 @@ class ReferenceSide:
 
 
 class GlobalInitializer:
-    """Direct global initialiser; `refiner_factory(reference, roi)` builds the refiner (planar engine by default).
-    The reference side of the last reference and ROI (`ReferenceSide`) is kept for the next call."""
+    """Direct global initialiser; `refiner_factory(engine)` builds the refiner on a planar engine (`PlanarRefiner`
+    by default). The reference side of the last reference and ROI (`ReferenceSide`) is kept for the next call.
+    `engine` (and `general`): a tracker's engines, whose prepared reference serves the initialisations against its
+    reference and ROI; any other reference gets an engine of its own with the default `RegistrationConfig`."""
 
-    def __init__(self, config: GlobalInitConfig | None = None, refiner_factory: RefinerFactory | None = None) -> None:
+    def __init__(
+        self,
+        config: GlobalInitConfig | None = None,
+        refiner_factory: RefinerFactory | None = None,
+        engine: PlanarRegistration | None = None,
+        general: GeneralRegistration | None = None,
+    ) -> None:
         backend.init()
         self.config = config or GlobalInitConfig()
         self.refiner_factory: RefinerFactory = refiner_factory or PlanarRefiner
+        self._engine, self._general = engine, general
         self._side: ReferenceSide | None = None
 
     def reference_side(self, ref: F32, roi: Roi) -> ReferenceSide:
         """The prepared reference side for this reference and ROI (the kept one when they are the same)."""
         if self._side is None or not self._side.serves(ref, roi):
             x, y, w, h = roi
+            engine, general = self._engine, self._general
+            if engine is None or tuple(roi) != engine.roi or not np.array_equal(ref, engine.prepared.image):
+                engine, general = PlanarRegistration.prepare(ref, roi, config=RegistrationConfig()), None
             search = SearchReference.build(ref, roi, self.config.fourier_mellin)
             self._side = ReferenceSide(
-                reference=ref.copy(), roi=tuple(roi), search=search,
-                screen=BatchScreen(search, roi, self.config.screen_iterations), refine=self.refiner_factory(ref, roi),
+                reference=ref.copy(), roi=(x, y, w, h), search=search,
+                screen=BatchScreen(search, roi, self.config.screen_iterations), refine=self.refiner_factory(engine),
                 template=ref[y : y + h, x : x + w].copy(), points=roi_samples(roi),
-                general=GeneralRefiner(ref, roi))
+                general=GeneralRefiner(engine, general))
         return self._side
 
     def hypotheses(self, reference: F32, roi: Roi, current: F32) -> list[Hypothesis]:

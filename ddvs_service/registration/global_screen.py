@@ -29,13 +29,9 @@ from numpy.typing import NDArray
 from ddvs_service.lie import SL3_GENERATORS
 from ddvs_service.registration.global_fourier_mellin import SearchPair, SearchReference, level_roi
 from ddvs_service.registration.images import level_matrix
-from ddvs_service.registration.planar import (
-    DEGENERATE_RCOND,
-    MAD_TO_SIGMA,
-    normalisation,
-    project,
-    remaining_motion,
-)
+from ddvs_service.registration.planar import project
+from ddvs_service.registration.reference import normalisation
+from ddvs_service.registration.solver import DEGENERATE_RCOND, MAD_TO_SIGMA, remaining_motion
 from kernels.global_screen import (
     FRAME_NORM,
     FRAME_ROI,

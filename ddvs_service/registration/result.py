@@ -1,4 +1,5 @@
-"""The outcome of one planar registration."""
+"""The outcome of one registration: the planar model's, which the general model's result extends
+(`general_result.GeneralResult`)."""
 
 from __future__ import annotations
 

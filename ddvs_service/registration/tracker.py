@@ -18,22 +18,33 @@ from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import sl3_normalize
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.planar import PlanarRegistration, Roi
+from ddvs_service.registration.planar import PlanarRegistration
+from ddvs_service.registration.reference import Roi
 from ddvs_service.registration.result import RegistrationResult
 
 
 class Tracker:
-    """Track the ROI of `reference` through successive frames (same size as the reference)."""
+    """Track the ROI of the engine's reference through successive frames (same size as the reference). `engine`
+    (its prepared reference and settings) may be shared with the global initialiser that re-acquires for it."""
 
-    def __init__(
-        self,
+    def __init__(self, engine: PlanarRegistration) -> None:
+        self._problem = engine
+        self.reset()
+
+    @classmethod
+    def prepare(
+        cls,
         reference: ArrayLike,
         roi: Roi | None = None,
         config: RegistrationConfig = RegistrationConfig(),  # noqa: B008 - frozen, immutable default
         mask: ArrayLike | None = None,
-    ) -> None:
-        self._problem = PlanarRegistration(reference, roi=roi, mask=mask, config=config)
-        self.reset()
+    ) -> Tracker:
+        """A tracker on its own engine (`PlanarRegistration.prepare`)."""
+        return cls(PlanarRegistration.prepare(reference, roi=roi, mask=mask, config=config))
+
+    @property
+    def engine(self) -> PlanarRegistration:
+        return self._problem
 
     @property
     def G(self) -> NDArray[np.float64]:

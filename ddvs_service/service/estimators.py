@@ -1,7 +1,9 @@
 """The geometry sources of the servo: planar (`ρ* ≡ 0`, `e = 0`) or general (eq. (2), `G`, `e`, `ρ*`).
 
 Both adapt a stateful tracker to one face, `estimate(grey) -> Estimate`, with global (re-)initialisation on the first
-frame after a reference and while LOST, so the pipeline does not care which model runs. The general estimator's
+frame after a reference and while LOST, so the pipeline does not care which model runs. Each prepares the reference
+once: its tracker and its re-acquisition (`registration.reacquisition`, honouring `global_init` and
+`feature_source`) share the engine. The general estimator's
 parallax `ρ*` lives in the reference frame: `rho_coeffs` can be persisted and handed back after a restart.
 """
 
@@ -12,9 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ddvs_service.registration.general import GeneralConfig
+from ddvs_service.registration.general import GeneralRegistration
+from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.registration.general_tracker import GeneralTracker
-from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, reacquire
+from ddvs_service.registration.global_init import GlobalInitConfig
+from ddvs_service.registration.planar import PlanarRegistration
+from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.registration.tracker import Tracker
 from ddvs_service.service.config import RegistrationSettings
 
@@ -45,8 +50,9 @@ class PlanarEstimator:
 
     def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings) -> None:
         self.reference, self.roi, self.settings = reference, roi, settings
-        self._tracker = Tracker(reference, roi, settings.engine_config())
-        self._initializer = GlobalInitializer(GlobalInitConfig(feature_source=settings.feature_source))
+        engine = PlanarRegistration.prepare(reference, roi, config=settings.engine_config())
+        self._tracker = Tracker(engine)
+        self._acquire = _reacquisition(engine, None, settings)
         self._needs_init = True
 
     @property
@@ -64,11 +70,12 @@ class PlanarEstimator:
 
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
         message = ""
-        if self._needs_init and self.settings.global_init:
-            init, contradicts = reacquire(self._initializer, self.reference, self.roi, grey, self._tracker.G)
-            if init.status == "OK" and init.G is not None:
+        if self._needs_init and self._acquire.enabled:
+            init = self._acquire(grey, self._tracker.G)
+            if init.G is not None:
                 self._tracker.reset(init.G)
-                message = "global initialisation: ok" + (" (contradicted the tracking estimate)" if contradicts else "")
+                message = "global initialisation: ok" + (" (contradicted the tracking estimate)" if init.contradicts
+                                                         else "")
             else:  # never track on from the stale estimate: it is what was lost
                 return Estimate(False, self._tracker.G, np.zeros(3), 0.0, 0, 0.0, 0.0,
                                 f"global initialisation: LOST ({init.reason}); the last estimate is not used")
@@ -89,7 +96,8 @@ class GeneralEstimator:
                  rho_coeffs: list[float] | None = None) -> None:
         self.settings = settings
         config = GeneralConfig(base=settings.engine_config(), interpolation=settings.interpolation)
-        self._tracker = GeneralTracker(reference, roi, config, rho=rho_coeffs or None)
+        engine = GeneralRegistration.prepare(reference, roi, config=config)
+        self._tracker = GeneralTracker(engine, _reacquisition(engine.planar, engine, settings), rho=rho_coeffs or None)
         self._G: F64 = np.eye(3)
 
     @property
@@ -114,6 +122,13 @@ class GeneralEstimator:
             "" if tracked else f"registration: {result.reason} {result.flags}",
             [] if coeffs is None else [float(c) for c in coeffs],
         )
+
+
+def _reacquisition(engine: PlanarRegistration, general: GeneralRegistration | None,
+                   settings: RegistrationSettings) -> Reacquisition:
+    """The service's re-acquisition on the estimator's engines: off unless `global_init`, from `feature_source`."""
+    config = GlobalInitConfig(feature_source=settings.feature_source) if settings.global_init else None
+    return Reacquisition(engine, general, config)
 
 
 def _finite(x: float) -> float:

@@ -1,0 +1,60 @@
+"""Where a tracker (re)starts: on the first frame after a reference and after LOST, for the planar and the general
+model alike.
+
+`Reacquisition` runs the direct global initialiser (`global_init.GlobalInitializer`, with its settings: hypothesis
+sources such as `feature_source`, LOST criteria) on the tracker's own engines, so that the prepared reference is
+built once for both; when re-acquisition is off (`config` None) it reports "OFF" and the tracker goes on from its
+own last estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ddvs_service.registration.general import GeneralRegistration
+from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, reacquire
+from ddvs_service.registration.planar import PlanarRegistration
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """`status` "OK" (start from `G`), "LOST" (no confident estimate: `reason`) or "OFF" (re-acquisition disabled);
+    `contradicts`: an OK `G` far from the tracker's own estimate (`global_init.reacquire`)."""
+
+    status: Literal["OK", "LOST", "OFF"]
+    G: F64 | None
+    reason: str
+    contradicts: bool = False
+
+
+class Reacquisition:
+    """Re-acquisition for a tracker on `engine` (and `general`, the general model's engine, which the initialiser's
+    step 5 then uses), with the initialiser's `config`; None: off."""
+
+    def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
+                 config: GlobalInitConfig | None = None) -> None:
+        self.engine = engine
+        self._initializer = (None if config is None else
+                             GlobalInitializer(config, engine=engine, general=general))
+
+    @property
+    def enabled(self) -> bool:
+        return self._initializer is not None
+
+    def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
+        """Initialise `current` against the engine's reference and ROI; `tracking_G`: the tracker's own estimate,
+        to report a strong contradiction."""
+        if self._initializer is None:
+            return Acquisition("OFF", None, "re-acquisition is off")
+        prepared = self.engine.prepared
+        found, contradicts = reacquire(self._initializer, prepared.image, prepared.roi, current, tracking_G)
+        if found.status == "OK" and found.G is not None:
+            return Acquisition("OK", found.G, found.reason, contradicts)
+        return Acquisition("LOST", None, found.reason)
