@@ -15,7 +15,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from clients.channels import ChannelSpec, run_channels
 
@@ -24,18 +24,28 @@ if TYPE_CHECKING:
 
     from clients.bag import BagWriter
     from ddvs_service.protocol import Keys
+    from ddvs_service.protocol.ros import Header
 
 log = logging.getLogger(__name__)
 FRAME_QUEUE = 64
 IMAGE_KEYS = ("camera_image", "servo_reference")
 
 
+class _Stamped(Protocol):
+    """A decoded ROS message with a header (what `header_stamp_ns` reads)."""
+
+    @property
+    def header(self) -> Header: ...
+
+
 def header_stamp_ns(key_name: str, payload: bytes) -> int:
     """Validate a CDR payload with the protocol's decoder of its key; returns its header stamp (ns)."""
     from ddvs_service.protocol import decode_camera_info, decode_image, decode_joint_state, decode_twist_stamped
 
-    decoders = {"camera_image": decode_image, "servo_reference": decode_image, "camera_info": decode_camera_info,
-                "servo_twist": decode_twist_stamped, "arm_joint_states": decode_joint_state}
+    decoders: dict[str, Callable[[bytes], _Stamped]] = {
+        "camera_image": decode_image, "servo_reference": decode_image, "camera_info": decode_camera_info,
+        "servo_twist": decode_twist_stamped, "arm_joint_states": decode_joint_state,
+    }
     return decoders[key_name](payload).header.stamp.to_ns()
 
 

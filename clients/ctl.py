@@ -87,10 +87,12 @@ def send_command(session: zenoh.Session, keys: Keys, command: Command, timeout: 
     from ddvs_service.protocol import InvalidMessage, Reply, dump, parse_message
 
     for answer in session.get(keys.servo_command, payload=dump(command), timeout=timeout):
-        if answer.ok is None:
-            return Reply.failure(f"the service answered with a Zenoh error: {answer.err.payload.to_string()}")
+        sample = answer.ok
+        if sample is None:  # then the answer is a Zenoh error reply
+            error = "" if answer.err is None else answer.err.payload.to_string()
+            return Reply.failure(f"the service answered with a Zenoh error: {error}")
         try:
-            return parse_message(Reply, answer.ok.payload.to_bytes())
+            return parse_message(Reply, sample.payload.to_bytes())
         except InvalidMessage as exc:
             return Reply.failure(f"the service's reply is not a valid Reply: {exc}")
     return None
