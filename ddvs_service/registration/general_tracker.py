@@ -94,6 +94,11 @@ class GeneralTracker:
         """True when the next frame will be re-acquired globally."""
         return self._G is None
 
+    def lose(self) -> None:
+        """Re-acquire `G` and `e` globally on the next frame (ρ* is kept): the caller found the last fit wrong."""
+        self._G = self._G_before = None
+        self._failures = 0
+
     def track(self, current: ArrayLike) -> GeneralResult:
         """Register `current` (module docstring); on failure keep the state and report why."""
         try:

@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.registration.general import GeneralRegistration
-from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.planar import PlanarRegistration
@@ -95,8 +94,7 @@ class GeneralEstimator:
     def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings,
                  rho_coeffs: list[float] | None = None) -> None:
         self.settings = settings
-        config = GeneralConfig(base=settings.engine_config(), interpolation=settings.interpolation)
-        engine = GeneralRegistration.prepare(reference, roi, config=config)
+        engine = GeneralRegistration.prepare(reference, roi, config=settings.general_config())
         self._tracker = GeneralTracker(engine, _reacquisition(engine.planar, engine, settings), rho=rho_coeffs or None)
         self._G: F64 = np.eye(3)
 
@@ -108,7 +106,9 @@ class GeneralEstimator:
         """The general tracker always re-acquires globally (it also estimates ρ* on that frame)."""
 
     def lose(self) -> None:
-        """The general tracker declares LOST and re-acquires by itself."""
+        """Force a global re-acquisition of `G` and `e` on the next frame (the tracker also does so by itself
+        after `lost_after` failed frames)."""
+        self._tracker.lose()
 
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
         result = self._tracker.track(grey)
