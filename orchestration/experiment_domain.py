@@ -176,7 +176,7 @@ def run_trial(target: str, law: str, size: float, trial: int, settings: DomainSe
     control_px = (CAMERA.cx, CAMERA.cy)
     texture = _texture()
     reference = render_view(surface, texture, CAMERA, np.eye(4), appearance(0.0, settings, seed + 1))[0]
-    registration = RegistrationSettings()
+    registration = RegistrationSettings(levels=3)  # the pyramid of the measured sweeps (the default is the engine's 8)
     estimator = (GeneralEstimator if target == "saddle" else PlanarEstimator)(reference, roi, registration)
     limits = ControlSettings()
     control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=settings.gain, stop_threshold=settings.threshold,

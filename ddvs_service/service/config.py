@@ -8,6 +8,7 @@ raises `ValueError` and changes nothing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any, Literal
@@ -17,7 +18,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.protocol.session import SessionConfig
-from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.registration.config import RegistrationConfig, RobustLoss
+from ddvs_service.registration.general_config import GeneralConfig, Interpolation
 
 
 class _Strict(BaseModel):
@@ -38,40 +40,44 @@ class IntrinsicsConfig(_Strict):
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
 
+_ENGINE = RegistrationConfig()  # the engine's defaults: the one definition of each engine setting
+_GENERAL = GeneralConfig()
+
+
 class RegistrationSettings(_Strict):
-    """The registration: `model` planar (`ρ* ≡ 0`) or general (eq. (2): `G`, `e`, `ρ*`), the engine's settings
-    (`RegistrationConfig`), and the template: `roi = [x, y, w, h]` in reference pixels, or `template_size = [w, h]`
-    centred on the control point when `roi` is null. `interpolation` (general model only): how the full-resolution
-    steps sample the current image, "bspline" or "keys" (`GeneralConfig.interpolation`). `gamma` (the camera's
-    response exponent) and `defocus_px` (the frames' defocus relative to the reference, a disk radius in pixels):
-    `RegistrationConfig.gamma`, `.defocus_px`."""
+    """The registration: `model` planar (`ρ* ≡ 0`) or general (eq. (2): `G`, `e`, `ρ*`), the engine's settings,
+    and the template: `roi = [x, y, w, h]` in reference pixels, or `template_size = [w, h]` centred on the control
+    point when `roi` is null. Each engine setting (`levels` … `defocus_px`) is the `RegistrationConfig` field of that
+    name, with its default and its checks (`engine_config`); `interpolation` (general model only) is
+    `GeneralConfig.interpolation`. `global_init` and `feature_source`: the re-acquisition
+    (`registration.reacquisition`; off, or the global initialiser with that hypothesis source)."""
 
     model: Literal["planar", "general"] = "planar"
-    interpolation: Literal["keys", "bspline"] = "bspline"
+    interpolation: Interpolation = _GENERAL.interpolation
     roi: tuple[int, int, int, int] | None = None
     template_size: tuple[int, int] = (200, 150)
-    levels: int = 3
-    max_iterations: int = 30
-    gain_grid: tuple[int, int] = (1, 1)
-    robust: Literal["huber", "tukey", "none"] = "huber"
-    min_inlier_ratio: float = 0.5
-    tracking_step_tolerance_px: float = Field(default=1e-2, gt=0)
-    gamma: float = 1.0
-    defocus_px: float = 0.0
+    levels: int = _ENGINE.levels
+    max_iterations: int = _ENGINE.max_iterations
+    gain_grid: tuple[int, int] = _ENGINE.gain_grid
+    robust: RobustLoss = _ENGINE.robust
+    min_inlier_ratio: float = _ENGINE.min_inlier_ratio
+    tracking_step_tolerance_px: float = Field(default=_ENGINE.tracking_step_tolerance_px, gt=0)
+    gamma: float = _ENGINE.gamma
+    defocus_px: float = _ENGINE.defocus_px
     global_init: bool = True
     feature_source: Literal["none", "orb", "sift"] = "none"
 
     def engine_config(self) -> RegistrationConfig:
-        return RegistrationConfig(
-            levels=self.levels,
-            max_iterations=self.max_iterations,
-            gain_grid=self.gain_grid,
-            robust=self.robust,
-            min_inlier_ratio=self.min_inlier_ratio,
-            tracking_step_tolerance_px=self.tracking_step_tolerance_px,
-            gamma=self.gamma,
-            defocus_px=self.defocus_px,
-        )
+        """The planar engine's settings (raises ValueError naming a bad value)."""
+        return RegistrationConfig(**{name: getattr(self, name) for name in _ENGINE_FIELDS})
+
+    def general_config(self) -> GeneralConfig:
+        """The general engine's settings: `engine_config` as its base, and `interpolation`."""
+        return GeneralConfig(base=self.engine_config(), interpolation=self.interpolation)
+
+
+_ENGINE_FIELDS = tuple(f.name for f in dataclasses.fields(RegistrationConfig)
+                       if f.name in RegistrationSettings.model_fields)
 
 
 class ControlSettings(_Strict):
