@@ -56,7 +56,7 @@ def build_layout(keys: Keys) -> fl.Layout:
             title="state", config=fl.RawMessagesConfig(topic_path=t("servo_state")))),
     ])
     pose = fl.ThreeDeePanel(title="camera pose (ground truth)", config=fl.ThreeDeeConfig(
-        follow_tf="world", topics={pose_topic(keys): fl.BaseRendererBaseSettings(visible=True)}))
+        follow_tf="world", topics={pose_topic(keys): fl.BaseRendererPosesTopicSettings(visible=True)}))
     bottom = fl.SplitContainer(direction="row", items=[
         fl.SplitItem(proportion=2, content=plots), fl.SplitItem(content=state), fl.SplitItem(content=pose)])
     return fl.Layout(content=fl.SplitContainer(direction="column", items=[
