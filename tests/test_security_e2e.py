@@ -1,12 +1,17 @@
-"""End to end with security on: the paper's UR5 set-up (`ddvs sim arm` lockstep, `ddvs serve`, `ddvs bridge`, each its
-own process) where every node is a mutual-TLS client of the hub router with the generated deny-by-default rules. The
-servo converges to the reference pose while an observer keeps trying to stop the servo, to publish joint velocities
-and twists, and to read frames — none of which has any effect."""
+"""End to end with security on, set up the way docs/security.md tells a user: `ddvs security init --robot secure_e2e`
+(a robot other than the shipped robot0) writes the certificates and configurations, `ddvs router` runs the hub with
+them, and the paper's UR5 set-up (`ddvs sim arm` lockstep, `ddvs serve`, `ddvs bridge`, each its own process) runs as
+mutual-TLS clients with the files written for their roles, from the directory `ddvs security init` ran in (the paths
+inside are relative). The servo converges to the reference pose while an observer keeps trying to stop the servo, to
+publish joint velocities and twists, and to read frames — none of which has any effect, and the router's audit logs
+and counts each attempt."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
+import sys
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -15,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import free_port
-from test_security import SCRIPT, Inbox, _zenoh_config
+from test_security import Inbox
 
 from ddvs_service.lie import so3_log
 from ddvs_service.protocol import (
@@ -33,15 +38,9 @@ from ddvs_service.protocol import (
     encode_twist_stamped,
     parse_message,
 )
-from ddvs_service.protocol.security import (
-    TlsFiles,
-    certificate_identities,
-    client_config,
-    render_json5,
-    router_config,
-)
+from ddvs_service.protocol.audit import audit_key
 from ddvs_service.protocol.upload import encode_upload
-from orchestration.arm_run import BRIDGE, SCENE, ArmRunSettings, child, render_reference, service_config
+from orchestration.arm_run import BRIDGE, ROOT, SCENE, ArmRunSettings, child, render_reference, service_config
 
 KEYS = Keys("ddvs", "secure_e2e")
 TIME_LIMIT_S = 240.0
@@ -67,69 +66,76 @@ def pose_error(T_ref: np.ndarray, T: np.ndarray) -> tuple[float, float]:
 
 
 @pytest.mark.slow
-def test_arm_servo_converges_with_mtls_and_access_control_while_an_observer_interferes(tmp_path: Path) -> None:
-    certs = tmp_path / "certs"
-    subprocess.run(["bash", str(SCRIPT), str(certs)], check=True, capture_output=True)
+def test_arm_servo_converges_secured_by_security_init_while_an_observer_interferes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(ROOT)  # where the nodes run (`child`) and where `ddvs security init` runs
+    secure_dir = os.path.relpath(tmp_path / "secure", ROOT)  # a relative OUT, as a user would type it
     endpoint = f"tls/localhost:{free_port()}"
+    subprocess.run([sys.executable, "-m", "ddvs.cli", "security", "init", "--robot", KEYS.robot, "--prefix",
+                    KEYS.prefix, "--router", endpoint, "--no-observer-frames", secure_dir], check=True,
+                   capture_output=True)
     settings = ArmRunSettings(out_dir=tmp_path, law="ddvs", template=(70, 70), clock="lockstep",
                               robot=KEYS.robot, prefix=KEYS.prefix)
     reference, T_world_ref = render_reference(SCENE)
 
-    def role_file(role: str) -> Path:
-        path = tmp_path / f"{role}.json5"
-        path.write_text(render_json5(client_config(role, [endpoint], TlsFiles.for_role(certs, role)), role))
-        return path
+    def role_file(role: str) -> str:
+        return f"{secure_dir}/{role}-mtls.json5"
 
     serve = service_config(settings, 0, 0)
-    serve["zenoh"] = {"mode": "client", "connect": [endpoint], "zenoh_config": str(role_file("service"))}
+    serve["zenoh"] = {"mode": "client", "connect": [endpoint], "zenoh_config": role_file("service")}
     (tmp_path / "serve.json").write_text(json.dumps(serve))
     common = ["--prefix", KEYS.prefix, "--robot", KEYS.robot]
     secure = ["--mode", "client", "--connect", endpoint]
+    logs = tmp_path / "logs"
     with ExitStack() as stack:
-        router = zenoh.open(_zenoh_config(router_config(
-            KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, "router"),
-            observers_read_frames=False)))
-        stack.callback(router.close)
+        router = stack.enter_context(child("router", ["router", "--zenoh-config", role_file("router"), "--listen",
+                                                      endpoint], logs))
+        deadline = time.monotonic() + 60.0
+        while "listening on" not in (logs / "router.log").read_text():
+            assert router.poll() is None and time.monotonic() < deadline, (logs / "router.log").read_text()
+            time.sleep(0.1)
         children = {
             "sim": ["sim", "arm", "--config", str(SCENE), "--clock", "lockstep", "--fps", "30",
-                    "--lockstep-timeout", "2", "--start", "start", *secure, "--zenoh-config", str(role_file("plant")),
+                    "--lockstep-timeout", "2", "--start", "start", *secure, "--zenoh-config", role_file("plant"),
                     *common],
             "serve": ["serve", "--config", str(tmp_path / "serve.json"), "--fresh"],
-            "bridge": ["bridge", "--config", str(BRIDGE), *secure, "--zenoh-config", str(role_file("bridge")),
-                       *common],
+            "bridge": ["bridge", "--config", str(BRIDGE), *secure, "--zenoh-config", role_file("bridge"), *common],
         }
-        procs = {name: stack.enter_context(child(name, args, tmp_path / "logs")) for name, args in children.items()}
-        operator, observer = (zenoh.open(_zenoh_config(client_config(r, [endpoint], TlsFiles.for_role(certs, r))))
-                              for r in ("operator", "observer"))
+        procs = {name: stack.enter_context(child(name, args, logs)) for name, args in children.items()}
+        procs["router"] = router
+        operator, observer = (zenoh.open(zenoh.Config.from_file(role_file(r))) for r in ("operator", "observer"))
         stack.callback(operator.close)
         stack.callback(observer.close)
         statuses = Inbox(operator, KEYS.servo_status)
+        audits = Inbox(operator, audit_key(KEYS.base))
         truths = Inbox(operator, KEYS.arm_ground_truth)
         frames_to_observer = Inbox(observer, KEYS.camera_image)
 
         def check_children() -> None:
             for name, proc in procs.items():
-                log = (tmp_path / "logs" / f"{name}.log").read_text(errors="replace")[-2000:]
+                log = (logs / f"{name}.log").read_text(errors="replace")[-2000:]
                 assert proc.poll() is None, f"ddvs {name} exited ({proc.returncode}):\n{log}"
 
         started = time.monotonic()
-        while not statuses.payloads:
-            check_children()
-            assert time.monotonic() - started < TIME_LIMIT_S, "no status from the service"
-            time.sleep(0.2)
         upload = ReferenceImage(format="png", data=encode_upload(reference, "png"))
         assert command(observer, Command(op="set_reference", source="upload", image=upload), timeout=2.0) is None
-        for cmd in (Command(op="set_reference", source="upload", image=upload), Command(op="start")):
-            reply = command(operator, cmd)
-            assert reply is not None and reply.ok, (cmd.op, reply)
+        while not ((reply := command(operator, Command(op="set_reference", source="upload", image=upload),
+                                     timeout=2.0)) and reply.ok):  # the service needs the camera info first
+            check_children()
+            assert time.monotonic() - started < TIME_LIMIT_S, f"reference never accepted: {reply}"
+            time.sleep(0.2)
+        reply = command(operator, Command(op="start"))
+        assert reply is not None and reply.ok, reply
 
         converged = 0
         interfering = 0
+        attempts = 2  # the observer's frame subscription and set_reference above
         while converged < SETTLE_STATUSES:
             check_children()
             assert time.monotonic() - started < TIME_LIMIT_S, f"not converged; logs in {tmp_path / 'logs'}"
-            status = json.loads(statuses.payloads[-1])
-            converged = converged + 1 if status["state"] == "CONVERGED" else 0
+            status = json.loads(statuses.payloads[-1]) if statuses.payloads else {}
+            converged = converged + 1 if status.get("state") == "CONVERGED" else 0
             if interfering < 20:  # the observer's attempts, spread over the run
                 interfering += 1
                 assert command(observer, Command(op="stop"), timeout=0.2) is None
@@ -137,6 +143,7 @@ def test_arm_servo_converges_with_mtls_and_access_control_while_an_observer_inte
                     Header(Time.now(), ""), ["shoulder_pan_joint"], velocity=np.array([1.0]))))
                 observer.put(KEYS.servo_twist, encode_twist_stamped(TwistStamped(
                     Header(Time.now(), "camera"), np.array([0.2, 0.0, 0.0]), np.zeros(3))))
+                attempts += 3
             time.sleep(0.1)
         final = json.loads(statuses.payloads[-1])
         first, last = (parse_message(GroundTruth, truths.payloads[i]) for i in (0, -1))
@@ -149,3 +156,13 @@ def test_arm_servo_converges_with_mtls_and_access_control_while_an_observer_inte
         assert final["error_norm"] < 1e-3
         assert dt_mm < MAX_TRANSLATION_MM and dr_deg < MAX_ROTATION_DEG
         assert frames_to_observer.payloads == []
+        time.sleep(1.5)  # the router's next audit summary
+        audit = json.loads(audits.payloads[-1])
+        assert audit["denied"] == {"observer": attempts}, audit  # and nothing from the legitimate nodes
+        assert audit["no_role"] == {} and audit["tls_refused"] == 0
+        router_log = [json.loads(line) for line in (logs / "router.log").read_text().splitlines()
+                      if line.startswith("{")]
+        denied = {(e["action"], e["key"]) for e in router_log if e.get("msg") == "access denied"}
+        assert {e["identity"] for e in router_log if e.get("msg") == "access denied"} == {"observer"}
+        assert denied == {("Declare Subscriber", KEYS.camera_image), ("Query", KEYS.servo_command),
+                          ("Put", KEYS.arm_joint_velocity), ("Put", KEYS.servo_twist)}
