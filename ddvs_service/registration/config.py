@@ -28,7 +28,7 @@ class RegistrationConfig:
     - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
     - `step_tolerance_px`: convergence when the ROI corners are within this many full-resolution pixels of the
       fixed point at the finest level: the planar engine bounds the motion still to come by the geometric tail of
-      its last steps (`planar.remaining_motion`, used by the planar and the general engines);
+      its last steps (`solver.remaining_motion`, the Gauss-Newton skeleton of both engines);
       `coarse_step_tolerance_px`: the same, in level pixels, on the coarser levels (which only need to bring the
       finer level into its basin).
     - `tracking_step_tolerance_px`: `step_tolerance_px` for the `Tracker`'s warm-started frames. A stream refines

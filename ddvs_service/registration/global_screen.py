@@ -11,7 +11,7 @@ update
 moving a ROI corner by more than `MAX_STEP_FRACTION` of the ROI size is scaled down; the robust scale
 σ = 1.4826 · median |r| comes from the previous evaluation (the first one is plain least squares), never below
 `SCALE_FLOOR` grey levels. A start stops at a level once the corner motion still to come
-(`planar.remaining_motion`) is below `TOLERANCE_PX` level pixels, and for good when less than `MIN_VALID_RATIO` of
+(`solver.remaining_motion`) is below `TOLERANCE_PX` level pixels, and for good when less than `MIN_VALID_RATIO` of
 the ROI stays inside the current image, its first normal equations are degenerate, or an update is not finite: it
 keeps its last warp (the photometric ranking that follows sorts it out).
 
