@@ -50,7 +50,7 @@ def renderer(spec: str, texture: np.ndarray) -> Callable[[np.ndarray], np.ndarra
     if kind == "camera":
         return lambda T: render_camera(saddle, texture, INTR, T, psf_sigma=float(value))
     if kind == "texture":
-        blurred = cv2.GaussianBlur(texture, (0, 0), float(value))
+        blurred = np.asarray(cv2.GaussianBlur(texture, (0, 0), float(value)), np.float32)
         return lambda T: render_camera(saddle, blurred, INTR, T, psf_sigma=0.0)
     raise ValueError(f"unknown render {spec!r}: point, box:K, camera:SIGMA or texture:SIGMA")
 

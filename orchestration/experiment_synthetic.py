@@ -29,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,7 +48,7 @@ PAPER_R = (-0.1, -0.31, 1.04)
 PAPER_IMAGES = {"dvs": 905, "ddvs": 762}
 PAPER_ROI_SIZE = (200, 150)  # pixels used by the paper's synthetic experiment, centred on the control point
 TEXTURE = "graf"  # a shipped texture (sim.textures) or an image file
-LAW_NAMES = {"dvs": "dvs_reduced", "ddvs": "ddvs"}
+LAW_NAMES: dict[str, Literal["dvs_reduced", "ddvs"]] = {"dvs": "dvs_reduced", "ddvs": "ddvs"}  # paper → service
 
 
 class GeometrySource(Protocol):
@@ -226,7 +226,7 @@ def run_synthetic(law: str, setup: SyntheticSetup = SyntheticSetup(), geometry: 
         coupling_near_equilibrium=_coupling(tw[:, :3], np.array(rot_driven), np.array(angles) < 5.0),
         path_excess=path / float(np.linalg.norm(pos[0])) - 1.0,
         stopped=stopped,
-        time=np.arange(len(norms)) * setup.dt,
+        time=np.arange(len(norms), dtype=np.float64) * setup.dt,
         twists=tw,
         error_norms=np.array(norms),
         positions=pos,
