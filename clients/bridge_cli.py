@@ -10,12 +10,14 @@ import threading
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
+    from ddvs_service.protocol.ros_settings import add_ros_arguments
 
     parser.add_argument("--config", required=True, help="bridge JSON file (e.g. configs/arm/ur5_bridge.json)")
     parser.add_argument("--rate", type=float, default=100.0, help="command republishing rate in Hz (default 100)")
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
     add_zenoh_arguments(parser)
+    add_ros_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from clients.bridge_node import BridgeNode
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
+    from ddvs_service.protocol.ros_settings import ros_settings_from_args
 
     setup_logging("INFO")
     bridge = load_bridge(args.config)
@@ -30,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config_from_args(args)) as session:
-        node = BridgeNode(bridge, session, Keys(args.prefix, args.robot), args.rate)
+        node = BridgeNode(bridge, session, Keys(args.prefix, args.robot, ros_settings_from_args(args)), args.rate)
         try:
             node.run(stop)
         finally:

@@ -2,10 +2,14 @@
 
 Subscribes `servo_twist` (`TwistStamped`, camera frame) and `arm_joint_states`; publishes `arm_joint_velocity`
 (`JointState` with the bridge's joint names and `velocity`, stamped with the stamp of the twist it realises, so a
-lockstep plant can match it to its frame). A command is published at once for every new twist (from the newest
-joint state) and again every `1/rate` seconds, so a plant always has a fresh command; when the newest twist is
-older than the deadman (wall time since arrival) the commands are zero velocities (still stamped with that twist's
-stamp, so a lockstep plant never mistakes them for the answer to a newer frame).
+lockstep plant can match it to its frame). In ROS 2 mode (docs/ros2.md) it is a ros2_control client instead: it
+reads `sensor_msgs/JointState` from `/joint_states` and publishes `std_msgs/Float64MultiArray` velocities in the
+configured joint order on `arm_velocity_commands` (`/forward_velocity_controller/commands` by default).
+
+A command is published at once for every new twist (from the newest joint state) and again every `1/rate` seconds,
+so a plant always has a fresh command; when the newest twist is older than the deadman (wall time since arrival) the
+commands are zero velocities (still stamped with that twist's stamp, so a lockstep plant never mistakes them for the
+answer to a newer frame).
 
 Defence in depth (`ddvs_service.protocol.guard.CommandGuard`): a twist is acted on only when its key is exactly this
 robot's twist key, it decodes, it is finite, within `BridgeLimits.max_linear`/`max_angular`, and its stamp is no
@@ -28,13 +32,13 @@ from ddvs_service.protocol import (
     Header,
     JointState,
     Keys,
-    LatestSubscriber,
     Time,
-    declare_publisher,
     decode_joint_state,
     encode_joint_state,
 )
+from ddvs_service.protocol.endpoints import Endpoints
 from ddvs_service.protocol.guard import CommandGuard, CommandLimits
+from ddvs_service.protocol.ros import Float64MultiArray, encode_float64_multi_array
 
 log = logging.getLogger(__name__)
 
@@ -45,12 +49,11 @@ class BridgeNode:
     def __init__(self, bridge: TwistBridge, session: zenoh.Session, keys: Keys, rate: float = 100.0) -> None:
         if not rate > 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate}")
-        if keys.rmw:
-            raise ValueError("the bridge node uses plain ddvs keys; rmw_zenoh mode (rmw_domain_id) is not supported")
-        self.bridge, self.period = bridge, 1.0 / rate
-        self._twists = LatestSubscriber(session, keys.servo_twist)
-        self._joints = LatestSubscriber(session, keys.arm_joint_states)
-        self._publisher = declare_publisher(session, keys, "arm_joint_velocity")
+        self.bridge, self.period, self.ros = bridge, 1.0 / rate, keys.rmw
+        self._endpoints = Endpoints(session, keys, "ddvs_bridge")
+        self._twists = self._endpoints.latest("servo_twist")
+        self._joints = self._endpoints.latest("arm_joint_states")
+        self._publisher = self._endpoints.publisher("arm_velocity_commands" if self.ros else "arm_joint_velocity")
         self._q: NDArray[np.float64] | None = None
         self._twist_stamp = Time(0, 0)
         self._plant_stamp_ns: int | None = None
@@ -65,9 +68,7 @@ class BridgeNode:
         return self._plant_stamp_ns if self._plant_stamp_ns is not None else time.time_ns()
 
     def close(self) -> None:
-        self._twists.close()
-        self._joints.close()
-        self._publisher.undeclare()
+        self._endpoints.close()
 
     def _take_joint_state(self) -> None:
         sample = self._joints.try_recv()
@@ -102,8 +103,11 @@ class BridgeNode:
         if self._q is None:
             return False
         velocity = self.bridge.command(self._q, time.monotonic())
-        msg = JointState(Header(self._twist_stamp, ""), list(self.bridge.joint_names), velocity=velocity)
-        self._publisher.put(encode_joint_state(msg))
+        if self.ros:
+            self._publisher.put(encode_float64_multi_array(Float64MultiArray(velocity)))
+        else:
+            msg = JointState(Header(self._twist_stamp, ""), list(self.bridge.joint_names), velocity=velocity)
+            self._publisher.put(encode_joint_state(msg))
         self.published += 1
         return True
 

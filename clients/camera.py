@@ -1,7 +1,8 @@
 """`ddvs camera`: publish frames from a webcam or a video file (OpenCV `VideoCapture`) with their camera info.
 
 Keys: `camera/image` (`sensor_msgs/Image`, mono8 or bgr8) and `camera/info` (`sensor_msgs/CameraInfo`, with every
-frame), both stamped with the wall-clock time at which the frame was read (ns since the Unix epoch).
+frame), both stamped with the wall-clock time at which the frame was read (ns since the Unix epoch); in ROS 2 mode
+(`--ros-domain-id`, docs/ros2.md) the ROS topics `image_raw` and `camera_info`, as a ROS camera driver publishes.
 
 Calibration (`--calibration FILE`): an OpenCV FileStorage file (YAML/XML/JSON, e.g. written by
 `cv2.FileStorage` or the ROS `camera_calibration` YAML) or a plain JSON object, with the 3×3 camera matrix under
@@ -134,7 +135,7 @@ class CameraPublisher:
                  rectify: bool = True) -> None:
         import cv2
 
-        from ddvs_service.protocol import declare_publisher
+        from ddvs_service.protocol.endpoints import Endpoints
 
         if encoding not in ENCODINGS:
             raise ValueError(f"encoding {encoding!r} not supported; expected one of {ENCODINGS}")
@@ -143,13 +144,13 @@ class CameraPublisher:
         self._maps = (cv2.initUndistortRectifyMap(calibration.K, calibration.D, None, calibration.K, size,
                                                   cv2.CV_16SC2) if rectify and calibration.distorted else None)
         self._published_D = np.zeros(5) if self._maps is not None else calibration.D
-        self._image = declare_publisher(session, keys, "camera_image")
-        self._info = declare_publisher(session, keys, "camera_info")
+        self._endpoints = Endpoints(session, keys, "ddvs_camera")  # graph tokens and attachments in ROS 2 mode
+        self._image = self._endpoints.publisher("camera_image")
+        self._info = self._endpoints.publisher("camera_info")
         self.published = 0
 
     def close(self) -> None:
-        self._image.undeclare()
-        self._info.undeclare()
+        self._endpoints.close()
 
     def publish(self, frame: NDArray[np.uint8], stamp_ns: int) -> None:
         """Convert (grey/BGR), rectify when needed, and publish `frame` with camera info stamped `stamp_ns`."""
@@ -210,6 +211,7 @@ def stream(capture, publisher: CameraPublisher, fps: float | None, stop: threadi
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
+    from ddvs_service.protocol.ros_settings import add_ros_arguments
 
     parser.add_argument("source", help="webcam device index (e.g. 0) or video file path")
     calibration = parser.add_mutually_exclusive_group(required=True)
@@ -224,6 +226,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
     add_zenoh_arguments(parser)
+    add_ros_arguments(parser)
 
 
 def _open_capture(source: str):
@@ -242,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
+    from ddvs_service.protocol.ros_settings import ros_settings_from_args
 
     setup_logging("INFO")
     capture = _open_capture(args.source)
@@ -258,8 +262,8 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config_from_args(args)) as session:
-        publisher = CameraPublisher(session, Keys(args.prefix, args.robot), calibration, args.encoding,
-                                    rectify=not args.raw)
+        keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
+        publisher = CameraPublisher(session, keys, calibration, args.encoding, rectify=not args.raw)
         try:
             count = stream(capture, publisher, fps, stop, args.frames, args.loop)
         finally:

@@ -12,6 +12,7 @@ START_POSES = ("home", "reference", "start")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
+    from ddvs_service.protocol.ros_settings import add_ros_arguments
 
     parser.add_argument("--config", required=True, help="scene JSON file (e.g. configs/arm/ur5_poster.json)")
     parser.add_argument("--clock", choices=["realtime", "lockstep"], default="realtime",
@@ -27,11 +28,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
     add_zenoh_arguments(parser)
+    add_ros_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
+    from ddvs_service.protocol.ros_settings import ros_settings_from_args
     from sim.arm import ArmSim
     from sim.arm_node import ArmNode, ArmNodeSettings
     from sim.arm_scene import load_scene_config
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config_from_args(args)) as session:
-        node = ArmNode(sim, session, Keys(args.prefix, args.robot), settings)
+        node = ArmNode(sim, session, Keys(args.prefix, args.robot, ros_settings_from_args(args)), settings)
         try:
             node.run(stop)
         finally:

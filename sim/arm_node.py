@@ -2,7 +2,10 @@
 
 Keys (`ddvs_service.protocol.Keys`): publishes `camera_image` (mono8), `camera_info`, `arm_joint_states`
 (position + velocity) and `arm_ground_truth` (evaluation only: `T_world_cam`, OpenCV axes); subscribes
-`arm_joint_velocity` (`JointState` whose `velocity` gives rad/s per named joint; unnamed joints get 0).
+`arm_joint_velocity` (`JointState` whose `velocity` gives rad/s per named joint; unnamed joints get 0). In ROS 2
+mode (docs/ros2.md) it stands for a robot under ros2_control: `/image_raw`, `/camera_info`, `/joint_states`, and
+velocity commands as `std_msgs/Float64MultiArray` in the arm's joint order on `arm_velocity_commands`
+(`/forward_velocity_controller/commands`); those carry no stamp, so ROS 2 mode runs the realtime clock only.
 Every message of frame k carries the same stamp: node start wall time + simulated time of frame k.
 
 Clocks:
@@ -32,15 +35,14 @@ from ddvs_service.protocol import (
     Header,
     JointState,
     Keys,
-    LatestSubscriber,
     Time,
-    declare_publisher,
     dump,
     encode_camera_info,
     encode_image,
     encode_joint_state,
     image_from_array,
 )
+from ddvs_service.protocol.endpoints import Endpoints
 from ddvs_service.protocol.guard import CommandGuard, CommandLimits
 from sim.arm import ArmSim
 
@@ -80,12 +82,14 @@ class ArmNode:
     """Runs an `ArmSim` on a Zenoh session (the caller opens and closes the session)."""
 
     def __init__(self, sim: ArmSim, session: zenoh.Session, keys: Keys, settings: ArmNodeSettings) -> None:
-        if keys.rmw:
-            raise ValueError("the arm node publishes plain ddvs keys; rmw_zenoh mode (rmw_domain_id) is not supported")
+        if keys.rmw and settings.clock == "lockstep":
+            raise ValueError("lockstep needs the plain ddvs protocol: ROS 2 velocity commands (Float64MultiArray) "
+                             "carry no stamp to match a frame; use the realtime clock in ROS 2 mode")
         self.sim, self.keys, self.settings = sim, keys, settings
-        self._pub = {name: declare_publisher(session, keys, name) for name in (
+        self._endpoints = Endpoints(session, keys, "ddvs_arm_sim")
+        self._pub = {name: self._endpoints.publisher(name) for name in (
             "camera_image", "camera_info", "arm_joint_states", "arm_ground_truth")}
-        self._commands = LatestSubscriber(session, keys.arm_joint_velocity)
+        self._commands = self._endpoints.latest("arm_velocity_commands" if keys.rmw else "arm_joint_velocity")
         self._command: _Command | None = None
         self._epoch_ns = time.time_ns()
         # Defence in depth: only this robot's key, stamps within the deadman on the simulated clock, known joints,
@@ -97,9 +101,7 @@ class ArmNode:
         self.render_seconds = 0.0  # total time spent in `ArmSim.render` (mean = render_seconds / frames)
 
     def close(self) -> None:
-        self._commands.close()
-        for publisher in self._pub.values():
-            publisher.undeclare()
+        self._endpoints.close()
 
     def stamp_ns(self) -> int:
         """Stamp of the current simulated instant (ns since the Unix epoch)."""
@@ -130,7 +132,11 @@ class ArmNode:
         sample = self._commands.recv(timeout) if timeout > 0 else self._commands.try_recv()
         if sample is None:
             return False
-        msg = self.guard.joint_velocity(str(sample.key_expr), sample.payload.to_bytes())
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        if self.keys.rmw:
+            msg = self.guard.velocity_array(key, payload, list(self.sim.joint_names))
+        else:
+            msg = self.guard.joint_velocity(key, payload)
         if msg is None:
             return False
         velocity = self._velocity_by_name(msg)

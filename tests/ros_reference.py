@@ -17,6 +17,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo as RosCameraInfo
 from sensor_msgs.msg import Image as RosImage
 from sensor_msgs.msg import JointState as RosJointState
+from std_msgs.msg import Float64MultiArray as RosFloat64MultiArray
+from std_msgs.msg import MultiArrayDimension
 
 from ddvs_service.protocol import (
     ENCODINGS,
@@ -33,18 +35,21 @@ from ddvs_service.protocol import (
     encode_joint_state,
     encode_twist_stamped,
 )
+from ddvs_service.protocol.ros import Float64MultiArray, decode_float64_multi_array, encode_float64_multi_array
 
 ROS_CLASSES: dict[str, type] = {
     "sensor_msgs/msg/Image": RosImage,
     "sensor_msgs/msg/CameraInfo": RosCameraInfo,
     "geometry_msgs/msg/TwistStamped": RosTwistStamped,
     "sensor_msgs/msg/JointState": RosJointState,
+    "std_msgs/msg/Float64MultiArray": RosFloat64MultiArray,
 }
 CODECS: dict[str, tuple[Any, Any]] = {
     "sensor_msgs/msg/Image": (encode_image, decode_image),
     "sensor_msgs/msg/CameraInfo": (encode_camera_info, decode_camera_info),
     "geometry_msgs/msg/TwistStamped": (encode_twist_stamped, decode_twist_stamped),
     "sensor_msgs/msg/JointState": (encode_joint_state, decode_joint_state),
+    "std_msgs/msg/Float64MultiArray": (encode_float64_multi_array, decode_float64_multi_array),
 }
 
 
@@ -66,6 +71,11 @@ def _header(h: Any) -> tuple[int, int, str]:
 
 def fields(msg: Any) -> dict[str, Any]:
     """The message's fields as plain Python values (floats compared exactly; NaN never drawn)."""
+    if isinstance(msg, Float64MultiArray):
+        return {"dims": [tuple(d) for d in msg.dims], "offset": msg.data_offset, "data": _floats(msg.data)}
+    if isinstance(msg, RosFloat64MultiArray):
+        return {"dims": [(d.label, d.size, d.stride) for d in msg.layout.dim], "offset": msg.layout.data_offset,
+                "data": _floats(msg.data)}
     out: dict[str, Any] = {"header": _header(msg.header)}
     if isinstance(msg, Image | RosImage):
         out |= {"size": (msg.height, msg.width, msg.step), "encoding": msg.encoding,
@@ -91,7 +101,7 @@ def fields(msg: Any) -> dict[str, Any]:
 
 # --- random messages ---------------------------------------------------------------------------------------------
 
-_ALPHABET = list("abcXYZ_019 /:-") + ["é", "ß", "中", "😀"]
+_ALPHABET = [*"abcXYZ_019 /:-", "é", "ß", "中", "😀"]
 
 
 def _text(rng: np.random.Generator, max_len: int) -> str:
@@ -155,9 +165,21 @@ def random_joint_state(rng: np.random.Generator) -> RosJointState:
     return m
 
 
+def random_float64_multi_array(rng: np.random.Generator) -> RosFloat64MultiArray:
+    m = RosFloat64MultiArray()
+    for _ in range(int(rng.integers(0, 4))):
+        d = MultiArrayDimension()
+        d.label, d.size, d.stride = _text(rng, 8), int(rng.integers(0, 2**32)), int(rng.integers(0, 2**32))
+        m.layout.dim.append(d)
+    m.layout.data_offset = int(rng.integers(0, 2**32))
+    m.data = _values(rng, int(rng.integers(0, 10)))
+    return m
+
+
 RANDOM = {
     "sensor_msgs/msg/Image": random_image,
     "sensor_msgs/msg/CameraInfo": random_camera_info,
     "geometry_msgs/msg/TwistStamped": random_twist,
     "sensor_msgs/msg/JointState": random_joint_state,
+    "std_msgs/msg/Float64MultiArray": random_float64_multi_array,
 }

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,6 +13,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from ddvs_service.protocol import TOPICS, Keys, RmwAttachment, RmwPublisherIdentity, TruncatedMessage, rmw_zenoh_key
 from ddvs_service.protocol.rmw import TYPE_HASHES, dds_type_name
+from ddvs_service.protocol.ros_settings import RosSettings
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
@@ -52,29 +55,54 @@ def test_invalid_parts_are_rejected(prefix: str, robot: str, problem: str) -> No
         Keys(prefix, robot)
 
 
-def test_rmw_mode_switches_only_ros_typed_topics() -> None:
-    keys = Keys(rmw_domain_id=7)
+def test_ros_mode_switches_only_ros_typed_topics_to_ros_names() -> None:
+    keys = Keys(ros=RosSettings(domain_id=7))
     assert keys.rmw and not Keys().rmw
     assert keys.camera_image == (
-        "7/ddvs/robot0/camera/image/sensor_msgs::msg::dds_::Image_/"
+        "7/image_raw/sensor_msgs::msg::dds_::Image_/"
         "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
     )
-    assert keys.servo_twist.startswith("7/ddvs/robot0/servo/twist/geometry_msgs::msg::dds_::TwistStamped_/RIHS01_")
+    assert keys.camera_info.startswith("7/camera_info/sensor_msgs::msg::dds_::CameraInfo_/RIHS01_")
+    assert keys.servo_twist.startswith("7/servo_node/delta_twist_cmds/geometry_msgs::msg::dds_::TwistStamped_/RIHS01_")
+    assert keys.arm_joint_states.startswith("7/joint_states/sensor_msgs::msg::dds_::JointState_/")
+    assert keys.arm_velocity_commands.startswith(
+        "7/forward_velocity_controller/commands/std_msgs::msg::dds_::Float64MultiArray_/RIHS01_")
     assert keys.servo_status == "ddvs/robot0/servo/status"  # JSON stays on the plain key
-    assert keys.ros_topic("arm_joint_states") == "/ddvs/robot0/arm/joint_states"
-    with pytest.raises(ValueError, match="ROS name token"):
-        Keys(robot="robot-0", rmw_domain_id=0)
-    with pytest.raises(ValueError, match="domain id"):
-        Keys(rmw_domain_id=300)
+    assert Keys().ros_topic("arm_joint_states") == "/ddvs/robot0/arm/joint_states"  # plain mode: bag topic names
+    with pytest.raises(ValueError, match="domain_id"):
+        RosSettings(domain_id=300)
+
+
+def test_ros_names_resolve_in_the_namespace_and_remap() -> None:
+    ros = RosSettings(domain_id=0, namespace="/cell1/arm0",
+                      topics={"camera_image": "/camera/color/image_raw", "servo_twist": "twist_cmds"})
+    keys = Keys(ros=ros)
+    assert keys.ros_topic("camera_image") == "/camera/color/image_raw"  # absolute: as given
+    assert keys.ros_topic("camera_info") == "/cell1/arm0/camera_info"  # relative: in the namespace
+    assert keys.ros_topic("servo_twist") == "/cell1/arm0/twist_cmds"
+    assert keys.camera_image.startswith("0/camera/color/image_raw/sensor_msgs::msg::dds_::Image_/")
+    with pytest.raises(ValueError, match="remapping of 'servo_status'"):
+        Keys(ros=RosSettings(domain_id=0, topics={"servo_status": "/status"}))
+    with pytest.raises(ValueError, match="not a fully qualified ROS name"):
+        Keys(ros=RosSettings(domain_id=0, topics={"camera_image": "/camera/9image"}))
+    with pytest.raises(ValueError, match="private names"):
+        Keys(ros=RosSettings(domain_id=0, topics={"camera_image": "~/image"}))
+    with pytest.raises(ValueError, match="namespace"):
+        RosSettings(namespace="cell1")
 
 
 def test_type_hashes_match_the_ros_definitions() -> None:
     for store in (Stores.ROS2_JAZZY, Stores.ROS2_KILTED):
         typestore = get_typestore(store)
         for ros_type, expected in TYPE_HASHES.items():
-            assert typestore.hash_rihs01(ros_type) == expected, (store, ros_type)
+            if "/srv/" not in ros_type:  # rosbags hashes messages only
+                assert typestore.hash_rihs01(ros_type) == expected, (store, ros_type)
+    for ros_type, expected in TYPE_HASHES.items():  # the hashes rosidl generated into the Kilted wheels
+        description = json.loads((Path(sys.prefix) / "share" / f"{ros_type}.json").read_text(encoding="utf-8"))
+        assert {h["type_name"]: h["hash_string"] for h in description["type_hashes"]}[ros_type] == expected
     assert dds_type_name("sensor_msgs/msg/JointState") == "sensor_msgs::msg::dds_::JointState_"
     assert rmw_zenoh_key(0, "/a/b/", "sensor_msgs/msg/Image").startswith("0/a/b/sensor_msgs::msg::dds_::Image_/")
+    assert dds_type_name("std_srvs/srv/Trigger") == "std_srvs::srv::dds_::Trigger_"
 
 
 def test_attachment_layout_is_zenohs_serialization_of_the_rmw_tuple() -> None:

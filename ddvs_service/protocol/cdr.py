@@ -140,8 +140,8 @@ class CdrReader:
         self._pos += n
         return out
 
-    def _check_length(self, count: int, item_size: int, what: str) -> None:
-        """Reject a count before anything is allocated from it."""
+    def check_length(self, count: int, item_size: int, what: str) -> None:
+        """Reject a count of items of (at least) `item_size` bytes before anything is allocated from it."""
         nbytes = count * item_size
         if nbytes > self.max_bytes:
             raise MessageTooLarge(f"{what}: length {count} ({nbytes} bytes) exceeds the maximum of {self.max_bytes}")
@@ -173,7 +173,7 @@ class CdrReader:
         n = self.uint32(f"{what} length")
         if n == 0:
             return ""
-        self._check_length(n, 1, what)
+        self.check_length(n, 1, what)
         raw = self._take(n, what)
         return str(raw[: n - 1] if raw[n - 1] == 0 else raw, "utf-8", "replace")
 
@@ -183,16 +183,16 @@ class CdrReader:
         if n == 0:
             return np.zeros(0)
         self._align(8)
-        self._check_length(n, 8, what)
+        self.check_length(n, 8, what)
         return np.frombuffer(self._take(8 * n, what), dtype="<f8").astype(np.float64)
 
     def string_sequence(self, what: str) -> list[str]:
         n = self.uint32(f"{what} count")
-        self._check_length(n, 4, what)  # each element takes at least its length field
+        self.check_length(n, 4, what)  # each element takes at least its length field
         return [self.string(f"{what}[{i}]") for i in range(n)]
 
     def uint8_sequence(self, what: str) -> memoryview:
         """`sequence<uint8>` as a memoryview into the payload (no copy)."""
         n = self.uint32(f"{what} count")
-        self._check_length(n, 1, what)
+        self.check_length(n, 1, what)
         return self._take(n, what)

@@ -3,7 +3,8 @@
 Zenoh access control (`security.py`) decides who may publish; `CommandGuard` decides, in the receiving node, whether
 a sample that arrived is a command to act on. A command is accepted only when all of these hold:
 
-- its key is exactly this robot's key for that topic (`Keys.servo_twist` / `Keys.arm_joint_velocity`): a sample of
+- its key is exactly this robot's key for that topic (`Keys.servo_twist` / `Keys.arm_joint_velocity` /
+  `Keys.arm_velocity_commands` in ROS 2 mode, a `Float64MultiArray` in the configured joint order): a sample of
   another robot's namespace, or of a wildcard subscription that matched more, is refused (`foreign_key`);
 - it decodes as the ROS message of `TOPICS` (`malformed` otherwise, e.g. truncated CDR; the twist decoder also
   refuses non-finite values);
@@ -32,7 +33,15 @@ import numpy as np
 
 from ddvs_service.protocol.errors import ProtocolError
 from ddvs_service.protocol.keys import Keys
-from ddvs_service.protocol.ros import JointState, TwistStamped, decode_joint_state, decode_twist_stamped
+from ddvs_service.protocol.ros import (
+    Header,
+    JointState,
+    Time,
+    TwistStamped,
+    decode_float64_multi_array,
+    decode_joint_state,
+    decode_twist_stamped,
+)
 
 log = logging.getLogger("ddvs.guard")
 
@@ -131,6 +140,29 @@ class CommandGuard:
         if not msg.name or msg.velocity.size != len(msg.name):
             return self._reject("no_velocity", topic, key, f"{msg.velocity.size} velocities for joints {msg.name}; "
                                 "expected one velocity per named joint")
+        return self._joint_command(topic, key, msg)
+
+    def velocity_array(self, key: str, payload: bytes | bytearray | memoryview,
+                       joint_names: list[str]) -> JointState | None:
+        """A ros2_control-style command (`std_msgs/Float64MultiArray` on `arm_velocity_commands`, one velocity per
+        joint of `joint_names`, in that order) as a `JointState` stamped now on `clock`, if acceptable. It carries
+        no stamp: freshness is the receiver's (time since arrival), so only the other checks apply."""
+        topic = "arm_velocity_commands"
+        if not self._own_key(topic, key):
+            return None
+        try:
+            data = decode_float64_multi_array(payload).data
+        except ProtocolError as exc:
+            self._reject("malformed", topic, key, str(exc))
+            return None
+        if data.size != len(joint_names):
+            self._reject("no_velocity", topic, key, f"{data.size} velocities; expected one per joint of "
+                         f"{joint_names}, in that order")
+            return None
+        return self._joint_command(topic, key, JointState(Header(Time.from_ns(self.clock()), ""), joint_names,
+                                                          velocity=data))
+
+    def _joint_command(self, topic: str, key: str, msg: JointState) -> JointState | None:
         if len(set(msg.name)) != len(msg.name):
             return self._reject("malformed", topic, key, f"joint names {msg.name} repeat; expected each once")
         if not np.all(np.isfinite(msg.velocity)):

@@ -1,22 +1,23 @@
 """Zenoh key expressions of one robot's servo system, and the table of what travels on each.
 
-Every key is `<prefix>/<robot>/<suffix>`. With `rmw_domain_id` set, the ROS-typed topics (CDR payloads) move to
-the rmw_zenoh layout `<domain_id>/<prefix>/<robot>/<suffix>/<pkg>::msg::dds_::<Type>_/<type hash>` so that ROS 2
-nodes on rmw_zenoh see them as the ROS topic `/<prefix>/<robot>/<suffix>` (publishers then attach
-`rmw.RmwPublisherIdentity.next_attachment()` to each sample); JSON control-plane keys do not change.
+Every key is `<prefix>/<robot>/<suffix>`. In ROS 2 mode (`RosSettings.domain_id` set, docs/ros2.md) the ROS-typed
+topics (CDR payloads) move to rmw_zenoh keys under ROS names, `<domain_id>/<ROS name>/<pkg>::msg::dds_::<Type>_/
+<type hash>`, where the ROS name is the row's `ros_name` resolved in the ROS namespace or its remapping; publishers
+then attach `rmw.RmwPublisherIdentity.next_attachment()` to each sample and every endpoint declares its graph token
+(`endpoints.Endpoints`). JSON control-plane keys do not change.
 
-`TOPICS` is the single source of the key table in `docs/protocol.md` (a test keeps them equal).
+`TOPICS` is the single source of the key tables in `docs/protocol.md` and `docs/ros2.md` (tests keep them equal).
 """
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ddvs_service.protocol.rmw import rmw_zenoh_key
+from ddvs_service.protocol.ros_graph import LATEST_QOS, SENSOR_DATA_QOS, RosQos
+from ddvs_service.protocol.ros_settings import RosSettings
 
 _WILDCARDS = "*$?#"
-_ROS_TOKEN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 @dataclass(frozen=True)
@@ -32,20 +33,25 @@ class TopicSpec:
     congestion: str
     express: bool
     delivery: str
+    ros_name: str | None = None  # default ROS name in ROS 2 mode (relative: under the ROS namespace)
+    ros_qos: RosQos | None = None  # the QoS its graph tokens announce in ROS 2 mode
 
 
 TOPICS: dict[str, TopicSpec] = {
     "camera_image": TopicSpec(
         "camera/image", "sensor_msgs/msg/Image (CDR)", "sensor_msgs/msg/Image",
         "camera, sim", "serve, monitor, record", "DATA_HIGH", "DROP", False, "latest only (RingChannel(1))",
+        "image_raw", SENSOR_DATA_QOS,
     ),
     "camera_info": TopicSpec(
         "camera/info", "sensor_msgs/msg/CameraInfo (CDR)", "sensor_msgs/msg/CameraInfo",
         "camera, sim (with every image)", "serve, monitor, record", "DATA", "DROP", False, "latest only",
+        "camera_info", SENSOR_DATA_QOS,
     ),
     "servo_twist": TopicSpec(
         "servo/twist", "geometry_msgs/msg/TwistStamped (CDR), camera frame", "geometry_msgs/msg/TwistStamped",
         "serve", "bridge, sim, record", "REAL_TIME", "DROP", True, "latest only",
+        "servo_node/delta_twist_cmds", LATEST_QOS,
     ),
     "servo_status": TopicSpec(
         "servo/status", "JSON `Status`", None,
@@ -62,6 +68,7 @@ TOPICS: dict[str, TopicSpec] = {
     "servo_reference": TopicSpec(
         "servo/reference", "sensor_msgs/msg/Image (CDR)", "sensor_msgs/msg/Image",
         "serve (when a reference is set)", "monitor, record", "DATA", "BLOCK", False, "latest only",
+        "ddvs/reference", LATEST_QOS,
     ),
     "servo_command": TopicSpec(
         "servo/command", "query: JSON `Command` → reply: JSON `Reply`", None,
@@ -70,10 +77,17 @@ TOPICS: dict[str, TopicSpec] = {
     "arm_joint_states": TopicSpec(
         "arm/joint_states", "sensor_msgs/msg/JointState (CDR)", "sensor_msgs/msg/JointState",
         "sim (arm)", "bridge, record", "REAL_TIME", "DROP", True, "latest only",
+        "joint_states", LATEST_QOS,
     ),
     "arm_joint_velocity": TopicSpec(
         "arm/joint_velocity", "sensor_msgs/msg/JointState (CDR), `velocity` only", "sensor_msgs/msg/JointState",
         "bridge", "sim (arm)", "REAL_TIME", "DROP", True, "latest only",
+        "ddvs/joint_velocity", LATEST_QOS,
+    ),
+    "arm_velocity_commands": TopicSpec(
+        "arm/velocity_commands", "std_msgs/msg/Float64MultiArray (CDR), rad/s in the configured joint order",
+        "std_msgs/msg/Float64MultiArray", "bridge (ROS 2 mode)", "sim (arm, ROS 2 mode)", "REAL_TIME", "DROP", True,
+        "latest only", "forward_velocity_controller/commands", LATEST_QOS,
     ),
     "arm_ground_truth": TopicSpec(
         "arm/ground_truth", "JSON `GroundTruth` (evaluation only)", None,
@@ -98,22 +112,23 @@ def _validate_part(what: str, value: str) -> None:
 
 @dataclass(frozen=True)
 class Keys:
-    """Key expressions under `<prefix>/<robot>`; `rmw_domain_id` switches ROS-typed topics to rmw_zenoh keys."""
+    """Key expressions under `<prefix>/<robot>`; `ros.domain_id` switches ROS-typed topics to rmw_zenoh keys."""
 
     prefix: str = "ddvs"
     robot: str = "robot0"
-    rmw_domain_id: int | None = None
+    ros: RosSettings = field(default_factory=RosSettings)
 
     def __post_init__(self) -> None:
         _validate_part("prefix", self.prefix)
         _validate_part("robot", self.robot)
-        if self.rmw_domain_id is not None:
-            for token in f"{self.prefix}/{self.robot}".split("/"):
-                if not _ROS_TOKEN.match(token):
-                    raise ValueError(
-                        f"'{token}' is not a valid ROS name token (rmw_zenoh mode): expected [A-Za-z_][A-Za-z0-9_]*"
-                    )
-            rmw_zenoh_key(self.rmw_domain_id, "check", "sensor_msgs/msg/Image")  # validates the domain id
+        for row in self.ros.topics:
+            if row not in TOPICS or TOPICS[row].ros_type is None:
+                ros_rows = [n for n, spec in TOPICS.items() if spec.ros_type is not None]
+                raise ValueError(f"ROS topic remapping of {row!r}: expected one of {', '.join(ros_rows)}")
+        if self.ros.enabled:
+            for row, spec in TOPICS.items():
+                if spec.ros_type is not None:
+                    self.ros_topic(row)  # validates every ROS name now, not at the first use
 
     @property
     def base(self) -> str:
@@ -121,21 +136,27 @@ class Keys:
 
     @property
     def rmw(self) -> bool:
-        """True when ROS-typed topics use rmw_zenoh keys (and need `rmw` attachments)."""
-        return self.rmw_domain_id is not None
+        """True in ROS 2 mode: ROS-typed topics use rmw_zenoh keys (and need `rmw` attachments and graph tokens)."""
+        return self.ros.enabled
 
     def ros_topic(self, name: str) -> str:
-        """The ROS topic name of entry `name` of `TOPICS`, e.g. `/ddvs/robot0/camera/image`."""
-        return f"/{self.base}/{TOPICS[name].suffix}"
+        """The ROS topic name of row `name` of `TOPICS`: in ROS 2 mode its ROS name (remapped, resolved in the
+        namespace; `/image_raw` by default for the camera), otherwise `/<prefix>/<robot>/<suffix>` (bag topics)."""
+        spec = TOPICS[name]
+        if spec.ros_type is None or spec.ros_name is None:
+            raise ValueError(f"{name!r} carries JSON, not a ROS message: it has no ROS topic")
+        if not self.ros.enabled:
+            return f"/{self.base}/{spec.suffix}"
+        return self.ros.resolve(self.ros.topics.get(name, spec.ros_name))
 
     def key(self, name: str) -> str:
-        """The key expression of entry `name` of `TOPICS` (rmw_zenoh layout for ROS types in rmw mode)."""
+        """The key expression of entry `name` of `TOPICS` (rmw_zenoh layout for ROS types in ROS 2 mode)."""
         try:
             spec = TOPICS[name]
         except KeyError:
             raise KeyError(f"unknown topic {name!r}; expected one of {', '.join(TOPICS)}") from None
-        if self.rmw_domain_id is not None and spec.ros_type is not None:
-            return rmw_zenoh_key(self.rmw_domain_id, self.ros_topic(name), spec.ros_type)
+        if self.ros.domain_id is not None and spec.ros_type is not None:
+            return rmw_zenoh_key(self.ros.domain_id, self.ros_topic(name), spec.ros_type)
         return f"{self.base}/{spec.suffix}"
 
     @property
@@ -182,6 +203,10 @@ class Keys:
     @property
     def arm_joint_velocity(self) -> str:
         return self.key("arm_joint_velocity")
+
+    @property
+    def arm_velocity_commands(self) -> str:
+        return self.key("arm_velocity_commands")
 
     @property
     def arm_ground_truth(self) -> str:

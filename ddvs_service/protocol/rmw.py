@@ -1,17 +1,16 @@
-"""rmw_zenoh interoperability: key expressions and the sample attachment ROS 2 (Jazzy and later) nodes expect.
+"""rmw_zenoh interoperability: the key expressions and the sample attachment of ROS 2 (Jazzy and later) over Zenoh.
 
 rmw_zenoh_cpp publishes a topic `/<name>` of type `<pkg>/msg/<Type>` in ROS domain `<domain_id>` on the Zenoh key
 `<domain_id>/<name>/<pkg>::msg::dds_::<Type>_/<type hash>` (leading/trailing '/' of the topic stripped) with the CDR
-payload unchanged, and its subscriptions drop samples without a 33-byte attachment: int64 sequence number, int64
-source timestamp (ns since the epoch), the byte 16 (length prefix of the gid), 16-byte publisher gid, little-endian
-(Zenoh's `z_serialize` layout of that tuple).
+payload unchanged; a service `/<name>` of type `<pkg>/srv/<Type>` is a queryable on
+`<domain_id>/<name>/<pkg>::srv::dds_::<Type>_/<type hash>`. Its subscriptions drop samples without a 33-byte
+attachment: int64 sequence number, int64 source timestamp (ns since the epoch), the byte 16 (length prefix of the
+gid), 16-byte gid, little-endian (Zenoh's `z_serialize` layout of that tuple); service requests carry the client's
+and replies echo its sequence number and gid.
 
-The type hashes are RIHS01 (REP 2011) of the message definitions, identical from Humble to Kilted for these types;
-`tests/test_protocol_rmw.py` recomputes them with `rosbags`.
-
-Verified here: the key layout and the attachment bytes (against `zenoh.ext.z_serialize`), the hashes. Not verified
-(no ROS 2 installation on these machines): that a live rmw_zenoh node receives the samples. The graph liveliness
-tokens that make topics visible to `ros2 topic list` are not declared.
+The type hashes are RIHS01 (REP 2011) of the definitions, identical in Jazzy and Kilted for these types;
+`tests/test_protocol_keys.py` recomputes them with `rosbags` and reads them from the Kilted wheels. The ROS graph
+(liveliness tokens) is `ros_graph.py`.
 """
 
 from __future__ import annotations
@@ -28,8 +27,10 @@ TYPE_HASHES: dict[str, str] = {
     "sensor_msgs/msg/CameraInfo": "RIHS01_b3dfd68ff46c9d56c80fd3bd4ed22c7a4ddce8c8348f2f59c299e73118e7e275",
     "geometry_msgs/msg/TwistStamped": "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64",
     "sensor_msgs/msg/JointState": "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
+    "std_msgs/msg/Float64MultiArray": "RIHS01_1025ddc6b9552d191f89ef1a8d2f60f3d373e28b283d8891ddcc974e8c55397f",
+    "std_srvs/srv/Trigger": "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f",
 }
-"""RIHS01 type hashes of the ROS 2 message types this protocol carries."""
+"""RIHS01 type hashes of the ROS 2 message and service types this protocol carries."""
 
 ATTACHMENT_SIZE = 33
 _GID_SIZE = 16
@@ -37,15 +38,16 @@ _ATTACHMENT = struct.Struct("<qqB16s")
 
 
 def dds_type_name(ros_type: str) -> str:
-    """`sensor_msgs/msg/Image` → `sensor_msgs::msg::dds_::Image_` (the DDS-mangled name rmw_zenoh uses)."""
+    """`sensor_msgs/msg/Image` → `sensor_msgs::msg::dds_::Image_`, `std_srvs/srv/Trigger` →
+    `std_srvs::srv::dds_::Trigger_` (the DDS-mangled names rmw_zenoh uses in keys and liveliness tokens)."""
     parts = ros_type.split("/")
-    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
-        raise ValueError(f"ROS type {ros_type!r}: expected '<package>/msg/<Type>'")
-    return f"{parts[0]}::msg::dds_::{parts[2]}_"
+    if len(parts) != 3 or parts[1] not in ("msg", "srv") or not all(parts):
+        raise ValueError(f"ROS type {ros_type!r}: expected '<package>/msg/<Type>' or '<package>/srv/<Type>'")
+    return f"{parts[0]}::{parts[1]}::dds_::{parts[2]}_"
 
 
 def rmw_zenoh_key(domain_id: int, topic: str, ros_type: str) -> str:
-    """The Zenoh key expression rmw_zenoh uses for ROS topic `topic` of `ros_type` in ROS domain `domain_id`."""
+    """The Zenoh key expression rmw_zenoh uses for ROS topic (or service) `topic` of `ros_type` in `domain_id`."""
     if not 0 <= domain_id <= 232:
         raise ValueError(f"ROS domain id {domain_id}: expected an integer in [0, 232]")
     if ros_type not in TYPE_HASHES:

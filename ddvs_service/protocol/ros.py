@@ -1,9 +1,10 @@
 """ROS 2 data-plane messages and their CDR codecs, byte-identical to the ROS 2 (Humble … Kilted) definitions.
 
 Types: `builtin_interfaces/Time`, `std_msgs/Header`, `sensor_msgs/Image`, `sensor_msgs/CameraInfo` (with
-`RegionOfInterest`), `geometry_msgs/TwistStamped`, `sensor_msgs/JointState`. Field order and alignment follow the
-`.msg` definitions exactly (see `cdr.py` for the layout rules); `tests/test_protocol_ros.py` checks every encoder
-byte for byte against `rosbags`.
+`RegionOfInterest`), `geometry_msgs/TwistStamped`, `sensor_msgs/JointState`, `std_msgs/Float64MultiArray` (what
+ros2_control's forward command controllers take) and the `std_srvs/srv/Trigger` request and response. Field order and
+alignment follow the `.msg` definitions exactly (see `cdr.py` for the layout rules); `tests/test_protocol_ros.py`
+checks every encoder against `rosbags` and against rclpy (the ROS 2 Kilted wheels) both ways.
 
 Decoders take the payload as bytes/memoryview (`sample.payload.to_bytes()`), raise only `ProtocolError`
 subclasses, and check every size against `max_bytes` before allocating. `decode_image` returns pixel data as a
@@ -455,3 +456,72 @@ def decode_joint_state(buf: bytes | bytearray | memoryview, max_bytes: int = MES
     velocity = r.float64_array("velocity")
     effort = r.float64_array("effort")
     return JointState(header, name, position, velocity, effort)
+
+
+@dataclass(eq=False)
+class Float64MultiArray:
+    """`std_msgs/Float64MultiArray`: `data` with an optional layout (`dims` of (label, size, stride), `data_offset`).
+
+    ros2_control's `forward_command_controller` (e.g. `forward_velocity_controller/commands`) reads `data` as one
+    value per configured joint, in the controller's joint order, and ignores the layout."""
+
+    data: NDArray[np.float64]
+    dims: list[tuple[str, int, int]] = field(default_factory=list)
+    data_offset: int = 0
+
+    def __post_init__(self) -> None:
+        self.data = _float_array("Float64MultiArray.data", self.data)
+        self.dims = [(str(label), int(size), int(stride)) for label, size, stride in self.dims]
+        for label, size, stride in self.dims:
+            _check_range(f"Float64MultiArray dimension {label!r} size", size, 0, _UINT32_MAX)
+            _check_range(f"Float64MultiArray dimension {label!r} stride", stride, 0, _UINT32_MAX)
+        _check_range("Float64MultiArray.data_offset", self.data_offset, 0, _UINT32_MAX)
+
+
+def encode_float64_multi_array(msg: Float64MultiArray) -> bytes:
+    """CDR payload of a `std_msgs/Float64MultiArray`."""
+    w = CdrWriter()
+    w.uint32(len(msg.dims))
+    for label, size, stride in msg.dims:
+        w.string(label)
+        w.uint32(size)
+        w.uint32(stride)
+    w.uint32(msg.data_offset)
+    w.float64_array(msg.data)
+    return w.finish()
+
+
+def decode_float64_multi_array(buf: bytes | bytearray | memoryview,
+                               max_bytes: int = MESSAGE_MAX_BYTES) -> Float64MultiArray:
+    r = CdrReader(buf, max_bytes)
+    n = r.uint32("layout.dim count")
+    r.check_length(n, 12, "layout.dim")  # each dimension takes at least a string length, size and stride
+    dims = [(r.string(f"layout.dim[{i}].label"), r.uint32(f"layout.dim[{i}].size"), r.uint32(f"layout.dim[{i}].stride"))
+            for i in range(n)]
+    offset = r.uint32("layout.data_offset")
+    return Float64MultiArray(r.float64_array("data"), dims, offset)
+
+
+def encode_trigger_request() -> bytes:
+    """`std_srvs/srv/Trigger` request: no fields (rosidl adds one uint8 so that the structure is not empty)."""
+    w = CdrWriter()
+    w.uint8(0)
+    return w.finish()
+
+
+def decode_trigger_request(buf: bytes | bytearray | memoryview) -> None:
+    """Check that `buf` is a `std_srvs/srv/Trigger` request (CDR_LE header and its one placeholder byte)."""
+    CdrReader(buf, MESSAGE_MAX_BYTES).uint8("structure_needs_at_least_one_member")
+
+
+def encode_trigger_response(success: bool, message: str) -> bytes:
+    """`std_srvs/srv/Trigger` response: `success`, then a human-readable `message`."""
+    w = CdrWriter()
+    w.boolean(success)
+    w.string(message)
+    return w.finish()
+
+
+def decode_trigger_response(buf: bytes | bytearray | memoryview) -> tuple[bool, str]:
+    r = CdrReader(buf, MESSAGE_MAX_BYTES)
+    return r.boolean("success"), r.string("message")

@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
+from ddvs_service.protocol.ros_settings import RosSettings
 from ddvs_service.protocol.session import SessionConfig
 from ddvs_service.registration.config import RegistrationConfig, RobustLoss
 from ddvs_service.registration.general_config import GeneralConfig, Interpolation
@@ -116,6 +117,7 @@ class ServiceConfig(_Strict):
     prefix: str = "ddvs"
     robot: str = "robot0"
     zenoh: SessionConfig = Field(default_factory=SessionConfig)
+    ros: RosSettings = Field(default_factory=RosSettings)  # ROS 2 mode over rmw_zenoh (docs/ros2.md); read at start
     state_dir: Path = Path("state")
     intrinsics: IntrinsicsConfig | None = None
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings)

@@ -43,7 +43,6 @@ from ddvs_service.protocol import (
     Status,
     Time,
     TwistStamped,
-    declare_publisher,
     decode_camera_info,
     decode_image,
     dump,
@@ -53,11 +52,13 @@ from ddvs_service.protocol import (
     open_session,
     parse_command,
 )
+from ddvs_service.protocol.endpoints import Endpoints
 from ddvs_service.protocol.security import warn_if_insecure
 from ddvs_service.service.config import IntrinsicsConfig, ServiceConfig, deep_merge
 from ddvs_service.service.inbox import Arrival, Inbox
 from ddvs_service.service.persistence import BackgroundWriter, StateStore
 from ddvs_service.service.pipeline import ServoPipeline, StepResult
+from ddvs_service.service.ros_commands import declare_command_services
 from ddvs_service.service.state import ServoState, TransitionError
 
 log = logging.getLogger("ddvs.serve")
@@ -76,7 +77,7 @@ class ServoNode:
         state = self.store.load_json("state.json") or {}
         self._config_changes: dict[str, Any] = state.get("config_changes") or {}
         self.config = self._with_persisted_changes(config)
-        self.keys = Keys(self.config.prefix, self.config.robot)
+        self.keys = Keys(self.config.prefix, self.config.robot, self.config.ros)
         self.pipeline = ServoPipeline(self.config, self._known_intrinsics(state))
         self.counters = {"frames": 0, "rejected": 0, "stale": 0, "idle": 0}
         self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
@@ -172,10 +173,12 @@ class ServoNode:
     def _serve(self, session: zenoh.Session, stop: threading.Event) -> None:
         k = self.keys
         inbox = self._inbox
-        inputs = [session.declare_subscriber(k.key("camera_image"), inbox.on_frame),
-                  session.declare_subscriber(k.key("camera_info"), inbox.on_info),
+        ends = Endpoints(session, k, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
+        inputs = [ends.subscriber("camera_image", inbox.on_frame), ends.subscriber("camera_info", inbox.on_info),
                   session.declare_queryable(k.key("servo_command"), inbox.on_query)]
-        self._pub = {name: declare_publisher(session, k, name)
+        if k.rmw:
+            declare_command_services(ends, inbox.on_query)
+        self._pub = {name: ends.publisher(name)
                      for name in ("servo_twist", "servo_status", "servo_state", "servo_config", "servo_reference")}
         token = session.liveliness().declare_token(k.key("liveliness"))
         log.info("serving", extra=fields(robot=self.config.robot, prefix=self.config.prefix,
@@ -193,10 +196,8 @@ class ServoNode:
             self._publish_twist(ZERO6, Time.now())
             self._publish_state("stopped: service shutting down")
             token.undeclare()
-            for declared in inputs:
-                declared.undeclare()
-            for pub in self._pub.values():
-                pub.undeclare()
+            inputs[-1].undeclare()
+            ends.close()
             log.info("service stopped", extra=fields(**self._counters().model_dump(),
                                                       received=inbox.frames_received))
 

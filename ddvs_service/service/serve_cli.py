@@ -6,6 +6,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ddvs_service.protocol.ros_settings import add_ros_arguments
     from ddvs_service.protocol.session import add_zenoh_arguments
 
     parser.add_argument("--config", metavar="FILE", help="service configuration (JSON); defaults apply without it")
@@ -15,6 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ignore (and delete) the persisted state instead of resuming it")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     add_zenoh_arguments(parser)
+    add_ros_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,13 +25,15 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from ddvs_service.logs import setup_logging
+    from ddvs_service.protocol.ros_settings import ros_settings_from_args
     from ddvs_service.protocol.session import session_config_from_args
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.node import ServoNode
 
     setup_logging(args.log_level)
     config = ServiceConfig.from_file(args.config) if args.config else ServiceConfig()
-    update: dict[str, object] = {"zenoh": session_config_from_args(args, base=config.zenoh)}
+    update: dict[str, object] = {"zenoh": session_config_from_args(args, base=config.zenoh),
+                                 "ros": ros_settings_from_args(args, base=config.ros)}
     if args.state_dir:
         update["state_dir"] = args.state_dir
     if args.robot:
