@@ -9,12 +9,18 @@ newest frame: latency stays bounded and the surplus frames are dropped, never qu
 
 Warm-up: the publisher first sends frames at 30 Hz until the service has answered `WARM_UP_FRAMES` of them (global
 initialisation and kernel compilation take seconds on a loaded machine), then measures; only frames stamped after
-that point count. Per frame the service's status gives its own time (`latency_ms.total`: payload taken → twist
+that point count. Per frame the service's status gives its own time (`latency_ms.total`: payload arrival → twist
 published, with `registration` inside it), so `transport = end to end − service` is everything outside the service
 loop: the publisher's encode and put, Zenoh both ways, the hand-off to the service's loop thread, the receiver's
 wake-up.
 
-    .venv/bin/python benchmarks/bench_service.py [--rates 30 100 200] [--seconds 10] [--markdown]
+State load (`--hogs N`): N busy-loop processes at normal priority run while measuring (two on a 2-core host: every
+core contested); `--realtime-priority P` runs the service under SCHED_FIFO (publisher and receiver stay normal).
+Never stale: the service withholds a twist that would go out after two newer frames arrived (status counter
+`stale`); such frames have no twist and count as not answered.
+
+    .venv/bin/python benchmarks/bench_service.py [--rates 30 100 200] [--seconds 10] [--hogs 0 2]
+                                                 [--realtime-priority 10] [--markdown]
 """
 
 from __future__ import annotations
@@ -121,29 +127,38 @@ def publish(port: int, rate: float, seconds: float) -> None:
     print(json.dumps({"published": n, "start_ns": start_ns, "put_median_ms": float(np.median(put_ms))}))
 
 
+def hog() -> None:
+    """A CPU hog: spins until killed."""
+    while True:
+        pass
+
+
 def command(session, keys: Keys, **kwargs: object) -> Reply:
     for reply in session.get(keys.key("servo_command"), payload=dump(Command(**kwargs)), timeout=30.0):
         return Reply.model_validate_json(reply.ok.payload.to_bytes())
     raise RuntimeError("the service did not answer")
 
 
-def summarise(rate: float, run: dict, statuses: list[dict], arrival_ms: dict[int, float]) -> dict:
-    """Figures of one rate from the measured frames' statuses (in stamp order) and their twists' latencies."""
+def summarise(rate: float, hogs: int, run: dict, statuses: list[dict], arrival_ms: dict[int, float],
+              counters: list[dict]) -> dict:
+    """Figures of one rate from the answered frames' statuses (in stamp order), their twists' latencies and the
+    counters of every measured frame's status (stale ones too)."""
     e2e = np.array([arrival_ms[s["frame_stamp_ns"]] for s in statuses])
     service = np.array([s["latency_ms"]["total"] for s in statuses])
     reg = np.array([s["latency_ms"]["registration"] for s in statuses])
     transport = e2e - service
     tail = e2e >= np.percentile(e2e, 99)
     half = len(e2e) // 2
-    counters = [s["counters"] for s in statuses]
 
     def ms(x: np.ndarray) -> dict[str, float]:
         return {"median": round(float(np.median(x)), 2), "p99": round(float(np.percentile(x, 99)), 2),
                 "max": round(float(x.max()), 1)}
 
     return {
-        "rate_hz": rate, "published": run["published"], "twists": len(e2e),
-        "dropped": counters[-1]["dropped"] - counters[0]["dropped"], "end_to_end_ms": ms(e2e),
+        "rate_hz": rate, "hogs": hogs, "published": run["published"], "twists": len(e2e),
+        "dropped": counters[-1]["dropped"] - counters[0]["dropped"],
+        "stale": counters[-1].get("stale", 0) - counters[0].get("stale", 0),
+        "within_period": round(float(np.mean(e2e <= 1e3 / rate)), 4), "end_to_end_ms": ms(e2e),
         "service_ms": ms(service), "registration_ms": ms(reg), "transport_ms": ms(transport),
         "publisher_put_median_ms": round(run["put_median_ms"], 2),
         "tail_service_share": round(float(np.median(service[tail] / e2e[tail])), 2),
@@ -152,7 +167,7 @@ def summarise(rate: float, run: dict, statuses: list[dict], arrival_ms: dict[int
     }
 
 
-def measure(rate: float, seconds: float) -> dict:
+def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | None) -> dict:
     port = free_port()
     state = tempfile.mkdtemp(prefix="ddvs-bench-")
     config = {
@@ -163,8 +178,9 @@ def measure(rate: float, seconds: float) -> dict:
     cfg = Path(state) / "serve.json"
     cfg.write_text(json.dumps(config))
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    realtime = ["--realtime-priority", str(realtime_priority)] if realtime_priority else []
     service = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(cfg),
-                                "--log-level", "WARNING"], env=env, cwd=ROOT)
+                                "--log-level", "WARNING", *realtime], env=env, cwd=ROOT)
     keys = Keys("ddvs", "bench")
     session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
     latencies: list[tuple[int, float]] = []  # (frame stamp, ms)
@@ -195,15 +211,23 @@ def measure(rate: float, seconds: float) -> dict:
                      image={"format": "png", "data": encode_upload(img)})
         assert ok.ok, ok.error
         assert command(session, keys, op="start").ok
-        out = subprocess.run([sys.executable, __file__, "--publish", str(port), "--rate", str(rate),
-                              "--seconds", str(seconds)], check=True, capture_output=True, text=True)
+        spinners = [subprocess.Popen([sys.executable, __file__, "--hog"]) for _ in range(hogs)]
+        try:
+            out = subprocess.run([sys.executable, __file__, "--publish", str(port), "--rate", str(rate),
+                                  "--seconds", str(seconds)], check=True, capture_output=True, text=True)
+        finally:
+            for spinner in spinners:
+                spinner.kill()
+                spinner.wait()
         run = json.loads(out.stdout.strip().splitlines()[-1])
         time.sleep(0.5)
         with lock:  # twists answering a measured frame (the watchdog's zero twists carry no frame's stamp)
             arrival_ms = {stamp: ms for stamp, ms in latencies if stamp >= run["start_ns"]}
         run_statuses = [s for s in statuses if s["frame_stamp_ns"] in arrival_ms]
         run_statuses.sort(key=lambda s: s["frame_stamp_ns"])
-        return summarise(rate, run, run_statuses, arrival_ms)
+        measured = sorted((s for s in statuses if s["frame_stamp_ns"] >= run["start_ns"]),
+                          key=lambda s: s["frame_stamp_ns"])  # stale ones included
+        return summarise(rate, hogs, run, run_statuses, arrival_ms, [s["counters"] for s in measured])
     finally:
         for s in subs:
             s.undeclare()
@@ -218,22 +242,29 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=30.0, help=argparse.SUPPRESS)
     parser.add_argument("--rates", type=float, nargs="+", default=[30.0, 100.0, 200.0])
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--hogs", type=int, nargs="+", default=[0], help="CPU hogs while measuring (one run each)")
+    parser.add_argument("--hog", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--realtime-priority", type=int, metavar="1-99",
+                        help="run the service under SCHED_FIFO (ddvs serve --realtime-priority)")
     parser.add_argument("--markdown", action="store_true", help="print a markdown table")
     args = parser.parse_args()
     if args.publish:
         publish(args.publish, args.rate, args.seconds)
         return
+    if args.hog:
+        hog()
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load average {os.getloadavg()[0]:.2f}", flush=True)
-    rows = [measure(rate, args.seconds) for rate in args.rates]
+    rows = [measure(rate, args.seconds, hogs, args.realtime_priority) for hogs in args.hogs for rate in args.rates]
     if args.markdown:
-        print("| input rate | frames published / answered / dropped | end to end median / p99 / max | service "
-              "median / p99 | registration median / p99 | transport median / p99 | p99 frames: service share | "
-              "median 1st / 2nd half | load |")
-        print("|---|---|---|---|---|---|---|---|---|")
+        print("| input rate | hogs | frames published / answered / dropped / stale | twists within a period | "
+              "end to end median / p99 / max | service median / p99 | registration median / p99 | transport median "
+              "/ p99 | p99 frames: service share | median 1st / 2nd half | load |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         for r in rows:
             e, sv, rg, tr = r["end_to_end_ms"], r["service_ms"], r["registration_ms"], r["transport_ms"]
-            print(f"| {r['rate_hz']:.0f} Hz | {r['published']} / {r['twists']} / {r['dropped']} | "
+            print(f"| {r['rate_hz']:.0f} Hz | {r['hogs']} | {r['published']} / {r['twists']} / {r['dropped']} / "
+                  f"{r['stale']} | {r['within_period']:.1%} | "
                   f"{e['median']:.2f} / {e['p99']:.2f} / {e['max']:.1f} ms | {sv['median']:.2f} / {sv['p99']:.2f} ms | "
                   f"{rg['median']:.2f} / {rg['p99']:.2f} ms | {tr['median']:.2f} / {tr['p99']:.2f} ms | "
                   f"{r['tail_service_share']:.0%} | {r['median_halves_ms'][0]:.2f} / {r['median_halves_ms'][1]:.2f} ms "

@@ -20,7 +20,7 @@ from ddvs_service.protocol import encode_image, image_from_array
 from ddvs_service.protocol.ros import Header, Time
 from ddvs_service.service.node import ServoNode
 
-NO_WARMUP: tuple[str, ...] = ()  # the first frame after an upload must be slow: no kernels compiled ahead
+NO_WARMUP = ("--no-warmup",)  # the first frame after an upload must be slow: no kernels compiled ahead
 STAMP0_NS = 1_000_000_000  # frame stamps of these tests: 1 s + k periods, far from any wall-clock stamp
 
 
@@ -61,6 +61,14 @@ class Stream:
             time.sleep(max(t_next - time.monotonic(), 0.0))
 
 
+def answered(op: Operator, n: int, timeout_s: float = 120.0) -> None:
+    """Wait until `n` frames were answered with a twist (the first after an upload takes seconds on a loaded host)."""
+    deadline = time.monotonic() + timeout_s
+    while len(op.twists) < n:
+        assert time.monotonic() < deadline, f"{len(op.twists)} twists in {timeout_s} s"
+        time.sleep(0.05)
+
+
 def servo_frames(img: np.ndarray) -> list[np.ndarray]:
     """Views 6–8 px away from the reference, so every frame keeps the servo SERVOING with a non-zero twist."""
     return [shifted(img, 7.0 * np.cos(a), 7.0 * np.sin(a), 2.0) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
@@ -77,7 +85,7 @@ def test_watchdog_measures_frame_arrival_not_processing(tmp_path: Path) -> None:
         assert op.command(**upload_command(img)).ok
         assert op.command(op="start").ok
         with Stream(op, servo_frames(img), rate_hz=50.0) as stream:
-            time.sleep(3.0)
+            answered(op, 15)
         sent = set(stream.stamps)
         time.sleep(0.1)  # the last frame's twist
         n_streamed = len(op.twist_stamps)
@@ -101,14 +109,13 @@ def test_a_stale_twist_is_withheld_and_counted(tmp_path: Path) -> None:
         assert op.command(**upload_command(img)).ok
         assert op.command(op="start").ok
         with Stream(op, servo_frames(img), rate_hz=50.0):
-            time.sleep(3.0)
+            answered(op, 15)
         time.sleep(0.3)
     stale = [s for s in op.statuses if s["message"].startswith("stale")]
     assert stale, "no stale frame while the first registration took longer than two frame periods"
     assert op.statuses[-1]["counters"]["stale"] >= len(stale)
     published = set(op.twist_stamps)
     assert not [s["frame_stamp_ns"] for s in stale if s["frame_stamp_ns"] in published]
-    assert len(published) >= 5  # the frames after it are answered
 
 
 def test_frames_in_idle_are_not_answered(tmp_path: Path) -> None:

@@ -15,11 +15,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fresh", action="store_true",
                         help="ignore (and delete) the persisted state instead of resuming it")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--no-warmup", dest="warmup", action="store_false",
+                        help="skip compiling the configuration's kernels before serving (the first frame pays)")
+    parser.add_argument("--realtime-priority", type=int, metavar="1-99",
+                        help="run under SCHED_FIFO at this priority (needs root or CAP_SYS_NICE)")
     add_zenoh_arguments(parser)
     add_ros_arguments(parser)
 
 
+def use_realtime_scheduling(priority: int) -> None:
+    """SCHED_FIFO at `priority` (1–99) for this process and every thread it creates afterwards (Taichi's, Zenoh's).
+
+    With every core busy a servo at normal priority waits behind other processes (benchmarks/bench_service.py
+    --hogs 2); under SCHED_FIFO it runs as soon as a frame arrives. Needs root or CAP_SYS_NICE (systemd:
+    `CPUSchedulingPolicy=fifo`, or `AmbientCapabilities=CAP_SYS_NICE` with this flag); Linux keeps 5 % of each
+    second for normal tasks (`sched_rt_runtime_us`), so a runaway loop cannot freeze the host."""
+    import os
+
+    if not 1 <= priority <= 99:
+        raise SystemExit(f"--realtime-priority must be 1…99, got {priority}")
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except PermissionError as exc:
+        raise SystemExit(f"--realtime-priority {priority} refused ({exc}): run as root or with CAP_SYS_NICE") from exc
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.realtime_priority is not None:  # first: every thread created from here on inherits it
+        use_realtime_scheduling(args.realtime_priority)
+    import logging
     import shutil
     import signal
     import threading
@@ -45,5 +69,12 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    ServoNode(config).run(stop)
+    node = ServoNode(config)
+    if args.warmup:
+        from ddvs_service.logs import fields
+        from ddvs_service.service.startup import warm_up
+
+        seconds = warm_up(node.config, node.pipeline.intrinsics)
+        logging.getLogger("ddvs.serve").info("kernels warmed up", extra=fields(seconds=round(seconds, 3)))
+    node.run(stop)
     return 0

@@ -1,0 +1,155 @@
+"""Start-up of the servo service after a restart: process start → alive → first twist (issue 21).
+
+A service that was servoing is restarted while a camera publishes at 30 Hz (this process, stamps = wall clock):
+`alive` is the first reply to `get_state`, `first twist` the first twist answering a frame, both measured from the
+moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). `--warmup`
+(the default) compiles the configuration's kernels before the service declares itself alive; `--no-warmup` leaves
+them to the first frame. The warm-up's own time is read from the service's log.
+
+    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--gain-grid 1 1] [--markdown]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from bench_service import ROOT, F, H, W, command, frame_at, free_port, scene
+
+from ddvs_service.protocol import (
+    Header,
+    Keys,
+    SessionConfig,
+    Time,
+    declare_publisher,
+    decode_twist_stamped,
+    encode_image,
+    image_from_array,
+    open_session,
+)
+from ddvs_service.protocol.upload import encode_upload
+
+KEYS = Keys("ddvs", "boot")
+
+
+def spawn(config: Path, *args: str) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    return subprocess.Popen([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), *args],
+                            env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+
+
+def stop(service: subprocess.Popen) -> str:
+    service.send_signal(signal.SIGTERM)
+    _, stderr = service.communicate(timeout=60)
+    return stderr
+
+
+def warm_up_seconds(log: str) -> float | None:
+    for line in log.splitlines():
+        if line.startswith("{") and json.loads(line).get("msg") == "kernels warmed up":
+            return float(json.loads(line)["seconds"])
+    return None
+
+
+def prepare(config: Path, port: int) -> None:
+    """A first run: upload the reference and start the servo, so that the state directory resumes SERVOING (this
+    run also fills Taichi's offline cache)."""
+    service = spawn(config)
+    with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+        wait_alive(session, time.monotonic() + 300)
+        assert command(session, KEYS, op="set_reference", source="upload",
+                       image={"format": "png", "data": encode_upload(scene())}).ok
+        assert command(session, KEYS, op="start").ok
+        time.sleep(1.0)
+    stop(service)
+
+
+def wait_alive(session, deadline: float) -> float:
+    while True:
+        try:
+            command(session, KEYS, op="get_state")
+            return time.monotonic()
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
+def restart(config: Path, port: int, warmup: bool) -> dict:
+    frames = [frame_at(scene(), k) for k in range(90)]
+    first_twist: list[float] = []
+    with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+
+        def on_twist(sample) -> None:  # a twist answering a frame carries its wall-clock stamp (a zero one: 0)
+            if not first_twist and decode_twist_stamped(sample.payload.to_bytes()).header.stamp.to_ns() >= t_frames:
+                first_twist.append(time.monotonic())
+
+        t_frames = time.time_ns()
+        sub = session.declare_subscriber(KEYS.key("servo_twist"), on_twist)
+        pub = declare_publisher(session, KEYS, "camera_image")
+        done = threading.Event()
+
+        def camera() -> None:
+            k = 0
+            while not done.is_set():
+                stamp = Header(Time.from_ns(time.time_ns()), "camera")
+                pub.put(encode_image(image_from_array(frames[k % 90], "mono8", stamp)))
+                k += 1
+                time.sleep(1 / 30)
+
+        thread = threading.Thread(target=camera)
+        thread.start()
+        t0 = time.monotonic()
+        service = spawn(config, *(() if warmup else ("--no-warmup",)))
+        try:
+            alive = wait_alive(session, t0 + 300) - t0
+            deadline = time.monotonic() + 300
+            while not first_twist and time.monotonic() < deadline:
+                time.sleep(0.005)
+        finally:
+            done.set()
+            thread.join()
+            log = stop(service)
+            sub.undeclare()
+            pub.undeclare()
+    return {"warmup": warmup, "alive_s": round(alive, 3), "first_twist_s": round(first_twist[0] - t0, 3),
+            "warm_up_s": warm_up_seconds(log), "load_average": round(os.getloadavg()[0], 2)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--gain-grid", type=int, nargs=2, default=[1, 1], metavar=("ROWS", "COLS"))
+    parser.add_argument("--markdown", action="store_true")
+    args = parser.parse_args()
+    port = free_port()
+    state = tempfile.mkdtemp(prefix="ddvs-boot-")
+    config = Path(state) / "serve.json"
+    config.write_text(json.dumps({
+        "robot": "boot", "state_dir": state, "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
+        "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
+        "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid},
+    }))
+    prepare(config, port)
+    rows = [restart(config, port, warmup) for _ in range(args.runs) for warmup in (True, False)]
+    if args.markdown:
+        print("| warm-up | process start → alive | → first twist | warm-up itself | load |")
+        print("|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {'yes' if r['warmup'] else 'no'} | {r['alive_s']:.2f} s | {r['first_twist_s']:.2f} s | "
+                  f"{r['warm_up_s'] or 0:.2f} s | {r['load_average']:.2f} |")
+    else:
+        for r in rows:
+            print(json.dumps(r))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+"""What `ddvs serve` does before it declares itself alive: the kernels' warm-up.
+
+Warm-up: Taichi compiles (or, with its offline cache warm, loads and links) each kernel on its first launch, which
+made the first frame after a start or an upload take 0.4–1.5 s (cold cache: seconds more). `warm_up` runs the
+configuration's whole frame path once on a synthetic scene — reference preparation, the global initialiser of the
+first frame, tracking, the control law — so that those launches happen before the service answers anything.
+Kernels are specialised on their template arguments (gain grid, model, interpolation), not on image sizes, so any
+frame size compiles the same code; the configured or persisted intrinsics are used when known.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+
+from ddvs_service.camera import Intrinsics
+from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.pipeline import ServoPipeline
+
+WARM_UP_INTRINSICS = Intrinsics(420.0, 420.0, 159.5, 119.5, 320, 240)  # when none is configured or persisted
+
+
+def _fitting(intrinsics: Intrinsics, roi: tuple[int, int, int, int] | None) -> Intrinsics:
+    """`intrinsics` grown (principal point kept centred) until a configured ROI fits in the image."""
+    if roi is None:
+        return intrinsics
+    width, height = max(intrinsics.width, roi[0] + roi[2]), max(intrinsics.height, roi[1] + roi[3])
+    return Intrinsics(intrinsics.fx, intrinsics.fy, (width - 1) / 2, (height - 1) / 2, width, height)
+
+
+def synthetic_scene(intrinsics: Intrinsics, seed: int = 0) -> np.ndarray:
+    """A textured 8-bit grey image of the camera's size: smoothed noise, enough structure to register."""
+    rng = np.random.default_rng(seed)
+    noise = rng.uniform(0.0, 255.0, (intrinsics.height, intrinsics.width)).astype(np.float32)
+    return np.clip(cv2.GaussianBlur(noise, (0, 0), 2.0) * 3.0 - 255.0, 0, 255).astype(np.uint8)
+
+
+def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None) -> float:
+    """Run the configured frame path once on a synthetic scene; return the seconds it took."""
+    t0 = time.monotonic()
+    intrinsics = intrinsics or _fitting(WARM_UP_INTRINSICS, config.registration.roi)
+    pipeline = ServoPipeline(config, intrinsics)
+    reference = synthetic_scene(intrinsics)
+    pipeline.set_reference(reference)
+    pipeline.machine.start()
+    for dx in (1.5, 2.0):  # the first frame goes through the global initialiser, the second is tracked
+        pipeline.step(cv2.warpAffine(reference, np.array([[1.0, 0.0, dx], [0.0, 1.0, -dx]]),
+                                     (intrinsics.width, intrinsics.height), borderMode=cv2.BORDER_REFLECT))
+    return time.monotonic() - t0
