@@ -122,3 +122,49 @@ def test_a_fit_whose_error_jumps_moves_nothing(frames) -> None:
     for _ in range(pipeline.machine.confirm_frames - 1):  # the light is back: held until confirmed
         assert pipeline.step(view).state == ServoState.LOST
     assert pipeline.step(view).state == ServoState.SERVOING
+
+
+# --- the tracker: anchored scale and implausible fits ----------------------------------------------------------
+def _shifted_frames(occluded_from: int, n: int, fraction: float):
+    """A 320×240 view of the graf texture shifted by (0.3 k, 0.15 k) px in frame k, and from frame `occluded_from`
+    on the left of the image up to `fraction` of the 70×70 template covered by another scene (boat)."""
+    import cv2
+
+    from sim.textures import load_texture
+
+    h, w = 240, 320
+    reference = cv2.resize(load_texture("graf"), (2 * w, 2 * h), interpolation=cv2.INTER_AREA)[h // 2 : h // 2 + h,
+                                                                                                w // 2 : w // 2 + w]
+    reference = np.ascontiguousarray(reference)
+    other = cv2.resize(load_texture("boat"), (w, h), interpolation=cv2.INTER_AREA)
+    roi = (125, 85, 70, 70)
+    frames = []
+    for k in range(n):
+        shift = np.array([[1.0, 0.0, 0.3 * k], [0.0, 1.0, 0.15 * k]])
+        frame = cv2.warpAffine(reference, shift, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if k >= occluded_from:
+            cols = int(roi[0] + fraction * roi[2])
+            frame[:, :cols] = other[:, w - cols :]
+        frames.append((np.rint(frame).astype(np.float32), (0.3 * k, 0.15 * k)))
+    return reference, roi, frames
+
+
+def test_tracker_never_accepts_a_wrong_fit_under_a_sudden_occluder() -> None:
+    """Issue 20: 43 % of the template covered at once. Huber with σ re-estimated from every iteration's median
+    accepted a fit 16 px off with 97 % "inliers"; with σ capped at the last good frames' scale the inlier ratio
+    measures the occlusion and the wrong fit is refused (its own scale jumped)."""
+    from ddvs_service.registration.config import RegistrationConfig
+    from ddvs_service.registration.tracker import Tracker
+
+    reference, roi, frames = _shifted_frames(occluded_from=6, n=10, fraction=0.43)
+    tracker = Tracker.prepare(reference, roi, RegistrationConfig(levels=3, robust="huber"))
+    for k, (frame, (tx, ty)) in enumerate(frames):
+        result = tracker.track(frame)
+        H = result.H
+        error = float(np.hypot(H[0, 2] - tx, H[1, 2] - ty))
+        if k < 6:
+            assert result.converged and error < 0.5, (k, result.reason, error)
+        else:
+            assert result.inlier_ratio < 0.8, (k, result.inlier_ratio)
+            assert not result.converged or error < 1.0, (k, error, result.reason)
+    assert not result.converged and "implausible fit" in result.reason

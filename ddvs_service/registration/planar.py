@@ -7,7 +7,8 @@ coordinates, the gains, the bias); updates `G ← G · N⁻¹ exp(Σ xᵢ Aᵢ) 
 `N` the level's normalisation `q = (p − c) / s` around the ROI centre, which keeps the 8 unknowns equally scaled;
 `N⁻¹ exp(·) N` is itself in SL(3)), `S ← S + δS`, `β ← β + δβ`; the step is the motion of the ROI corners. The
 robust scale σ = 1.4826 · median |r| is taken from the previous evaluation (the first one of a cold start uses plain
-least squares).
+least squares); a caller may cap the σ the weights and the inlier count use (`run(scale_cap=…)`: the tracker anchors
+it at its last good frames, `registration.integrity`), while the result reports the σ measured on the frame.
 
 `G` maps reference pixels to current pixels, full-image 0-based pixel centres; `roi = (x, y, w, h)` in reference
 pixels covers columns x … x + w − 1 and rows y … y + h − 1.
@@ -65,6 +66,7 @@ class _State:
     residual_rms: float = float("nan")
     inlier_ratio: float = 0.0
     cost: float = float("inf")
+    scale_cap: float = float("inf")
 
 
 def project(G: F64, pts: F64) -> F64:
@@ -144,9 +146,12 @@ class PlanarRegistration:
         scale0: float | None = None,
         first_level: int | None = None,
         tolerance_px: float | None = None,
+        scale_cap: float | None = None,
     ) -> RegistrationResult:
         """Register `current` starting from `G0` (any scale, positive determinant; identity by default), gains and
         bias (eq. (4)) and robust scale σ (grey levels; `None`: estimated from a first least-squares evaluation).
+        `scale_cap` (grey levels): the largest σ the robust weights and the inlier count may use (none when None);
+        the result's `scale` is the σ measured on the frame, uncapped.
 
         `first_level`: the coarsest pyramid level to solve (0 = full resolution only); the coarsest available by
         default. A warm start whose predicted motion is small starts finer and skips the coarse levels' cost.
@@ -158,7 +163,8 @@ class PlanarRegistration:
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         G = np.eye(3) if G0 is None else sl3_normalize(np.asarray(G0, dtype=np.float64).reshape(3, 3))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
-        state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0)
+        state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0,
+                       scale_cap=float("inf") if scale_cap is None else float(scale_cap))
         pyramid = self.load_current(cur, len(levels))
         fine = self.config.step_tolerance_px if tolerance_px is None else tolerance_px
 
@@ -212,7 +218,7 @@ class PlanarRegistration:
         p = self._params
         p[PARAMS_G : PARAMS_G + 9] = G_l.reshape(9)
         p[PARAMS_BETA] = state.beta
-        p[PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
+        p[PARAMS_SIGMA] = 1e30 if state.scale is None else min(state.scale, state.scale_cap)
         p[PARAMS_ROBUST] = 0 if state.scale is None else self._robust_code
         p[PARAMS_GAINS:] = state.gains.reshape(-1)
 
@@ -239,12 +245,12 @@ class PlanarRegistration:
         level: Level,
         state: _State,
         tolerance: float,
-        geometric: tuple[int, ...] = tuple(range(8)),
+        geometric: tuple[int, ...] | None = None,
         photometric: bool = True,
     ) -> LevelOutcome:
-        """Gauss-Newton (`solver.gauss_newton`) at one level over the sl(3) coordinates `geometric` (and the
-        photometric unknowns unless `photometric` is False) until the corner motion still to come is below
-        `tolerance` level pixels; updates `state`."""
+        """Gauss-Newton (`solver.gauss_newton`) at one level over the sl(3) coordinates `geometric` (all of them
+        when None) and the photometric unknowns unless `photometric` is False, until the corner motion still to come
+        is below `tolerance` level pixels; updates `state`."""
         model = _PlanarLevel(self, level, state, geometric, photometric)
         outcome = gauss_newton(model, state, self.config, level.index, level.n_pixels, level.size, tolerance)
         state.G = sl3_normalize(level.D_inv @ model.G_l @ level.D)
@@ -257,13 +263,14 @@ class _PlanarLevel:
 
     check_every_iteration = False
 
-    def __init__(self, engine: PlanarRegistration, level: Level, state: _State, geometric: tuple[int, ...],
+    def __init__(self, engine: PlanarRegistration, level: Level, state: _State, geometric: tuple[int, ...] | None,
                  photometric: bool) -> None:
         self.engine, self.level, self.state = engine, level, state
         layout = engine.layout
         self._sl_G, self._sl_S, self._sl_b = layout.slice("G"), layout.slice("S"), layout.slice("beta")
         self.free = np.zeros(layout.size, dtype=bool)
-        self.free[self._sl_G][list(geometric)] = True
+        sl3 = np.arange(self._sl_G.start, self._sl_G.stop)
+        self.free[sl3 if geometric is None else sl3[list(geometric)]] = True
         self.free[self._sl_S] = self.free[self._sl_b] = photometric
         self._subset = None if self.free.all() else np.ix_(self.free, self.free)
         self.G_l = level.D @ state.G @ level.D_inv

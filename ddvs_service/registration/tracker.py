@@ -7,7 +7,9 @@ applied once more). When that does not converge the frame is solved again from t
 whole pyramid.
 
 The state is `G` (SL(3), reference → current full-image pixels), the gains `S`, the bias `β` (eq. (4)) and the
-robust scale σ. A frame whose registration converged replaces the state; any other frame leaves it unchanged and
+robust scale σ. Integrity (`registration.integrity`): the σ the engine uses is capped at a multiple of the scale of
+the last good frames, and a converged fit whose own scale or whose corners jumped implausibly is refused. A frame
+whose registration converged and passed that check replaces the state; any other frame leaves it unchanged and
 is reported with `converged = False` and the reason. `track` never raises and never returns a non-finite `G`.
 """
 
@@ -18,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import sl3_normalize
 from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.registration.integrity import Integrity
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.reference import Roi
 from ddvs_service.registration.result import RegistrationResult
@@ -29,6 +32,7 @@ class Tracker:
 
     def __init__(self, engine: PlanarRegistration) -> None:
         self._problem = engine
+        self._integrity = Integrity(engine.roi)  # kept through resets: the reference does not change
         self.reset()
 
     @classmethod
@@ -65,18 +69,27 @@ class Tracker:
             start = self._prediction()
             config = self._problem.config
             tolerance = config.tracking_step_tolerance_px
+            cap = self._integrity.scale_cap
             result = self._problem.run(current, G0=start, gains0=self._gains, beta0=self._beta, scale0=self._scale,
-                                       first_level=config.tracking_levels - 1, tolerance_px=tolerance)
+                                       first_level=config.tracking_levels - 1, tolerance_px=tolerance, scale_cap=cap)
             if not result.converged and (start is not self._G or len(result.iterations) < len(self._problem.levels)):
                 result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta,
-                                           scale0=self._scale, tolerance_px=tolerance)
+                                           scale0=self._scale, tolerance_px=tolerance, scale_cap=cap)
         except Exception as exc:  # the tracker's contract: report, never raise
             return self._failure(f"error: {type(exc).__name__}: {exc}")
         if not np.all(np.isfinite(result.G)):
             return self._failure(f"non-finite estimate ({result.reason})")
         if result.converged:
+            implausible = self._integrity.judge(start, result.G, result.scale)
+            if implausible:
+                result.converged, result.reason = False, implausible
+        if result.converged:
+            self._integrity.accept(result.scale)
             self._G_before, self._G = self._G, result.G
-            self._gains, self._beta, self._scale = result.S, result.beta, result.scale
+            # the next frame's first σ: never below the anchor's floor (a frame identical to the reference measures
+            # σ at the engine's floor, and Tukey weights at that scale would reject the next frame's every pixel)
+            self._gains, self._beta = result.S, result.beta
+            self._scale = max(result.scale, self._integrity.config.min_anchor)
         else:
             self._G_before = None
         return result

@@ -1,0 +1,104 @@
+"""Integrity of a tracked fit: is a converged frame plausible given the frames accepted before it?
+
+A Gauss-Newton fit can converge (its steps shrink) on a wrong optimum, e.g. when a foreign object covers part of
+the template: with the robust scale σ re-estimated from the median residual of every iteration, the occluder's
+pixels raise σ, gain weight and drag the fit; the inlier ratio (|r| ≤ 4.685 σ) is then measured against a σ that
+fits whatever the frame shows and stays near 1. Two measures keep the estimate honest:
+
+- an anchored scale: `anchor` is the median of the robust scales measured on the last `anchor_frames` accepted
+  frames (grey levels, 1.4826 · median |r| of each frame before any cap), never below `min_anchor` (an 8-bit
+  camera's frames differ from the reference by quantisation, noise and interpolation: a first frame identical to
+  the reference must not make every later one look implausible), and defined only once `min_frames` frames were
+  accepted (the first frame after a reference taken from the stream is the reference itself, σ at the engine's
+  floor; the next ones, on a sharp texture, measure several grey levels of interpolation error). The engine's σ is capped at
+  `scale_cap × anchor` (`PlanarRegistration.run(scale_cap=…)`), so residuals far beyond the good frames' stay
+  outliers: their weight is bounded (Huber) or zero (Tukey), and the inlier ratio counts pixels consistent with
+  the good frames. Gradual changes (light, blur, a slowly entering occluder) move the anchor with them.
+- plausibility of a converged frame (`judge`): its own scale at most `scale_jump × anchor`, and the ROI corners
+  within `max(corner_jump_fraction × ROI size, min_corner_jump_px)` pixels of where the frame started
+  (the constant-velocity prediction or the last good estimate): consecutive frames at 30 Hz move a few pixels and
+  the prediction absorbs most of it, a jump of a tenth of the template is a different optimum.
+
+Before the anchor is defined only the corner test applies. The anchor survives a re-acquisition (the reference, and so the scale of a good fit, is the same).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+Roi = tuple[int, int, int, int]
+
+
+@dataclass(frozen=True)
+class IntegrityConfig:
+    """Thresholds of the integrity check (module docstring). Scales are ratios to the anchor, jumps in
+    full-resolution pixels or fractions of the ROI's larger side."""
+
+    anchor_frames: int = 15
+    min_frames: int = 3
+    min_anchor: float = 1.5
+    scale_cap: float = 2.0
+    scale_jump: float = 2.5
+    corner_jump_fraction: float = 0.1
+    min_corner_jump_px: float = 8.0
+
+    def __post_init__(self) -> None:
+        if not (1 <= self.min_frames <= self.anchor_frames and self.min_anchor > 0.0):
+            raise ValueError(f"need 1 ≤ min_frames ≤ anchor_frames and min_anchor > 0, got {self.min_frames}, "
+                             f"{self.anchor_frames}, {self.min_anchor}")
+        if not 1.0 <= self.scale_cap <= self.scale_jump:
+            raise ValueError(f"need 1 ≤ scale_cap ≤ scale_jump, got {self.scale_cap} and {self.scale_jump}")
+        if not (self.corner_jump_fraction > 0.0 and self.min_corner_jump_px > 0.0):
+            raise ValueError("corner_jump_fraction and min_corner_jump_px must be > 0")
+
+
+class Integrity:
+    """The anchored scale and the plausibility test of one tracked template `roi = (x, y, w, h)`."""
+
+    def __init__(self, roi: Roi, config: IntegrityConfig = IntegrityConfig()) -> None:
+        x, y, w, h = roi
+        self.config = config
+        self._corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1.0, 1.0, 1.0, 1.0]])
+        self._max_jump = max(config.corner_jump_fraction * max(w, h), config.min_corner_jump_px)
+        self._scales: deque[float] = deque(maxlen=config.anchor_frames)
+
+    @property
+    def anchor(self) -> float | None:
+        """Median robust scale of the last accepted frames (grey levels), None before `min_frames` were."""
+        if len(self._scales) < self.config.min_frames:
+            return None
+        return max(float(np.median(self._scales)), self.config.min_anchor)
+
+    @property
+    def scale_cap(self) -> float | None:
+        """The largest σ the engine may use on the next frame (None: no cap yet)."""
+        anchor = self.anchor
+        return None if anchor is None else self.config.scale_cap * anchor
+
+    def judge(self, start: F64, G: F64, frame_scale: float) -> str:
+        """Why the converged fit `G` of a frame that started from `start` is implausible ("" when it is not)."""
+        anchor = self.anchor
+        if anchor is not None and not frame_scale <= self.config.scale_jump * anchor:
+            return (f"implausible fit: residual scale {frame_scale:.2f} is more than {self.config.scale_jump:g}× the "
+                    f"last good frames' {anchor:.2f} grey levels")
+        jump = corner_distance(start, G, self._corners)
+        if not jump <= self._max_jump:
+            return (f"implausible fit: the template's corners jumped {jump:.1f} px from the frame's start (at most "
+                    f"{self._max_jump:.1f} px between frames)")
+        return ""
+
+    def accept(self, frame_scale: float) -> None:
+        """Add an accepted frame's robust scale to the anchor."""
+        if np.isfinite(frame_scale) and frame_scale > 0.0:
+            self._scales.append(float(frame_scale))
+
+
+def corner_distance(A: F64, B: F64, corners: F64) -> float:
+    """Largest distance (pixels) between the images of the homogeneous `corners` (3×n) under `A` and under `B`."""
+    a, b = A @ corners, B @ corners
+    return float(np.max(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)))
