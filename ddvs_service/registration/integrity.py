@@ -10,8 +10,8 @@ fits whatever the frame shows and stays near 1. Two measures keep the estimate h
   camera's frames differ from the reference by quantisation, noise and interpolation: a first frame identical to
   the reference must not make every later one look implausible), and defined only once `min_frames` frames were
   accepted (the first frame after a reference taken from the stream is the reference itself, σ at the engine's
-  floor; the next ones, on a sharp texture, measure several grey levels of interpolation error). The engine's σ is capped at
-  `scale_cap × anchor` (`PlanarRegistration.run(scale_cap=…)`), so residuals far beyond the good frames' stay
+  floor; the next ones, on a sharp texture, measure several grey levels of interpolation error). The engine's σ is
+  capped at `scale_cap × anchor` (`PlanarRegistration.run(scale_cap=…)`), so residuals far beyond the good frames' stay
   outliers: their weight is bounded (Huber) or zero (Tukey), and the inlier ratio counts pixels consistent with
   the good frames. Gradual changes (light, blur, a slowly entering occluder) move the anchor with them.
 - plausibility of a converged frame (`judge`): its own scale at most `scale_jump × anchor`, and the ROI corners
@@ -19,7 +19,8 @@ fits whatever the frame shows and stays near 1. Two measures keep the estimate h
   (the constant-velocity prediction or the last good estimate): consecutive frames at 30 Hz move a few pixels and
   the prediction absorbs most of it, a jump of a tenth of the template is a different optimum.
 
-Before the anchor is defined only the corner test applies. The anchor survives a re-acquisition (the reference, and so the scale of a good fit, is the same).
+Before the anchor is defined only the corner test applies. The anchor survives a re-acquisition (the reference, and
+so the scale of a good fit, is the same).
 """
 
 from __future__ import annotations
