@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import subprocess
 import threading
 import time
@@ -402,10 +403,7 @@ def test_password_identities_wrong_credentials_refused_and_roles_enforced(certs:
 def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
     acl = router_config(KEYS, certificate_identities(), ["tls/localhost:7447"])["access_control"]
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
-    all_keys = {KEYS.key(name) for name in ("camera_image", "camera_info", "servo_twist", "servo_status",
-                                            "servo_config", "servo_state", "servo_reference", "servo_command",
-                                            "arm_joint_states", "arm_joint_velocity", "arm_ground_truth",
-                                            "liveliness")} | {audit_key(KEYS.base)}
+    all_keys = {KEYS.key(name) for name in TOPICS} | {audit_key(KEYS.base)}
     writers: dict[tuple[str, str], set[str]] = {}
     for rule in acl["rules"]:
         assert rule["permission"] == "allow" and set(rule["key_exprs"]) <= all_keys
@@ -415,7 +413,7 @@ def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
                 for key in rule["key_exprs"]:
                     writers.setdefault((message, key), set()).add(role)
     assert writers[("put", KEYS.servo_twist)] == {"service"}
-    assert writers[("put", KEYS.arm_joint_velocity)] == {"bridge"}
+    assert writers[("put", KEYS.arm_joint_velocity)] == writers[("put", KEYS.arm_velocity_commands)] == {"bridge"}
     assert writers[("put", KEYS.camera_image)] == writers[("put", KEYS.arm_joint_states)] == {"plant"}
     assert writers[("query", KEYS.servo_command)] == {"operator"}
     assert writers[("declare_queryable", KEYS.servo_command)] == {"service"}
@@ -467,21 +465,26 @@ def test_shipped_examples_agree_on_the_robot() -> None:
         config = json.loads(path.read_text(encoding="utf-8"))
         robot = Keys(config.get("prefix", "ddvs"), config.get("robot", Keys().robot))
         assert robot.base in granted, f"{path.name}: robot {robot.base} is not covered by {router.name}"
-        check_robot_covered(robot, REPO / "configs" / "security" / "service-mtls.json5")
+        assert check_robot_covered(robot, REPO / "configs" / "security" / "service-mtls.json5")
 
 
-def test_a_robot_not_covered_by_the_router_beside_the_node_config_is_refused(tmp_path: Path) -> None:
+def test_a_robot_not_covered_by_the_router_beside_the_node_config_is_refused(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     write_configs(tmp_path, Keys("ddvs", "ur5"), "certs", "tls/localhost:7447", roles=["service", "operator"])
     service_file = tmp_path / "service-mtls.json5"
-    check_robot_covered(Keys("ddvs", "ur5"), service_file)  # covered: nothing to say
-    with pytest.raises(ValueError, match=r"robot 'ddvs/robot0' is not covered .* grants \['ddvs/ur5'\].*"
-                                         r"ddvs security init --robot robot0"):
-        check_robot_covered(Keys("ddvs", "robot0"), service_file)
+    with caplog.at_level(logging.ERROR, logger="ddvs.security"):
+        assert check_robot_covered(Keys("ddvs", "ur5"), service_file)  # covered: nothing to say
+        assert caplog.records == []
+        assert not check_robot_covered(Keys("ddvs", "robot0"), service_file)
+    [record] = caplog.records
+    assert re.search(r"robot 'ddvs/robot0' is not covered .* grants \['ddvs/ur5'\].*ddvs security init --robot "
+                     r"robot0", record.getMessage())
     lone = tmp_path / "alone" / "service.json5"
     lone.parent.mkdir()
     lone.write_text(service_file.read_text())
-    check_robot_covered(Keys("ddvs", "robot0"), lone)  # no router configuration in sight: nothing to check
-    check_robot_covered(Keys("ddvs", "robot0"), None)
+    assert check_robot_covered(Keys("ddvs", "robot0"), lone)  # no router configuration in sight: nothing to check
+    assert check_robot_covered(Keys("ddvs", "robot0"), None)
     assert robots_granted({"enabled": False, "rules": []}) == set()
 
 

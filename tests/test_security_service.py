@@ -247,3 +247,20 @@ def test_ddvs_serve_refuses_a_router_that_holds_a_role_certificate(certs: Path, 
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
+
+
+def test_ddvs_serve_refuses_a_robot_its_router_configuration_does_not_cover(tmp_path: Path) -> None:
+    """`ddvs security init --robot ur5` beside the service's Zenoh configuration, a service configured for robot0:
+    the service refuses to start and says why (instead of running with every message silently dropped)."""
+    subprocess.run([sys.executable, "-m", "ddvs.cli", "security", "init", "--robot", "ur5", "--configs-only",
+                    str(tmp_path / "secure")], check=True, capture_output=True)
+    serve_file = tmp_path / "serve.json"
+    zenoh_section = {"mode": "client", "connect": ["tls/localhost:7447"],
+                     "zenoh_config": str(tmp_path / "secure" / "service-mtls.json5")}
+    serve_file.write_text(json.dumps({"robot": "robot0", "state_dir": str(tmp_path / "state"), "zenoh": zenoh_section}))
+    result = subprocess.run([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(serve_file)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    errors = [json.loads(line) for line in result.stderr.splitlines() if line.startswith("{")]
+    assert any(e["level"] == "ERROR" and e.get("robot") == "ddvs/robot0" and "is not covered" in e["msg"]
+               and "ddvs security init --robot robot0" in e["msg"] for e in errors), result.stderr

@@ -5,10 +5,12 @@ Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everythi
 | role | publishes | subscribes | other |
 |---|---|---|---|
 | service | twist, status, config, state, reference | camera image + info | serves `servo/command`, holds token |
-| plant | camera image + info, joint states, ground truth | joint velocities, servo twist (free flyer) | |
-| bridge | joint velocities | servo twist, joint states | watches `servo/alive` token |
+| plant | camera image + info, joint states, ground truth | joint velocities (†), servo twist (free flyer) | |
+| bridge | joint velocities (†) | servo twist, joint states | watches `servo/alive` token |
 | operator | | every topic, the router's audit | queries `servo/command`, watches `servo/alive` |
 | observer | | every topic (frames only if allowed), the router's audit | watches `servo/alive` |
+
+(†) and the ROS 2 mode's `arm/velocity_commands` (`std_msgs/Float64MultiArray`).
 
 The rules are generated from `Keys`/`TOPICS` (`access_control`) so that they follow the key table; each role is
 mapped to a Zenoh identity (`Identity`: TLS certificate common names and/or usernames of user/password
@@ -17,7 +19,7 @@ client configuration comes from `client_config`. Flows are seen from the router:
 `egress` = delivered to it, so a publication needs the publisher's `put` (ingress) and the subscriber's `put` (egress).
 
 `warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS;
-`check_robot_covered` refuses a robot that the router configuration beside a node's own does not cover.
+`check_robot_covered` tells whether the router configurations beside a node's own cover its robot.
 `write_configs` writes a robot's configurations (`ddvs security init`, which also issues the certificates: `pki`).
 """
 
@@ -66,10 +68,11 @@ ROLE_GRANTS: dict[str, Grants] = {
     ),
     "plant": Grants(
         publish=("camera_image", "camera_info", "arm_joint_states", "arm_ground_truth"),
-        subscribe=("arm_joint_velocity", "servo_twist"),
+        subscribe=("arm_joint_velocity", "arm_velocity_commands", "servo_twist"),
     ),
     "bridge": Grants(
-        publish=("arm_joint_velocity",), subscribe=("servo_twist", "arm_joint_states"), watch=("liveliness",)
+        publish=("arm_joint_velocity", "arm_velocity_commands"), subscribe=("servo_twist", "arm_joint_states"),
+        watch=("liveliness",),
     ),
     "operator": Grants(subscribe=_SAMPLE_TOPICS, query=("servo_command",), watch=("liveliness",)),
     "observer": Grants(subscribe=_SAMPLE_TOPICS, watch=("liveliness",)),
@@ -414,14 +417,18 @@ def sibling_router_grants(zenoh_config: str | Path | None) -> dict[Path, set[str
     return grants
 
 
-def check_robot_covered(keys: Keys, zenoh_config: str | Path | None) -> None:
-    """Raise `ValueError` when router configurations beside the node's Zenoh configuration file grant nothing to
-    robot `keys.base`: that router would silently drop every message of this robot."""
+def check_robot_covered(keys: Keys, zenoh_config: str | Path | None, logger: logging.Logger | None = None) -> bool:
+    """False, with the reason logged as an error (`logger`, default `ddvs.security`), when router configurations
+    beside the node's Zenoh configuration file grant nothing to robot `keys.base`: that router would silently drop
+    every message of this robot. True when they grant it or when there is none in sight."""
     grants = sibling_router_grants(zenoh_config)
-    if grants and not any(keys.base in robots for robots in grants.values()):
-        granted = sorted(set().union(*grants.values()))
-        raise ValueError(
-            f"robot {keys.base!r} is not covered by the access control of {', '.join(str(p) for p in grants)} "
-            f"(beside {zenoh_config}), which grants {granted or 'no robot'}: that router would drop every message "
-            f"of this robot. Use the robot those rules were made for, or make rules for this one: "
-            f"`ddvs security init --robot {keys.robot} --prefix {keys.prefix} OUT/`")
+    if not grants or any(keys.base in robots for robots in grants.values()):
+        return True
+    granted = sorted(set().union(*grants.values()))
+    (logger or logging.getLogger("ddvs.security")).error(
+        f"robot {keys.base!r} is not covered by the access control of {', '.join(str(p) for p in grants)} (beside "
+        f"{zenoh_config}), which grants {granted or 'no robot'}: that router would drop every message of this robot. "
+        f"Use the robot those rules were made for, or make rules for this one: `ddvs security init --robot "
+        f"{keys.robot} --prefix {keys.prefix} OUT/`",
+        extra={"fields": {"robot": keys.base, "granted": granted, "router_configs": [str(p) for p in grants]}})
+    return False

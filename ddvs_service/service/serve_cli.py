@@ -64,6 +64,11 @@ def run(args: argparse.Namespace) -> int:
         update["robot"] = args.robot
     config = config.model_copy(update=update)
     config.check()
+    from ddvs_service.protocol.keys import Keys
+    from ddvs_service.protocol.security import check_robot_covered
+
+    if not check_robot_covered(Keys(config.prefix, config.robot), config.zenoh.zenoh_config):
+        return 2  # logged: the router configuration beside ours would silently drop everything of this robot
     if args.fresh:
         shutil.rmtree(config.state_dir, ignore_errors=True)
     stop = threading.Event()
