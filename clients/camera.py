@@ -88,7 +88,7 @@ def _read_filestorage(path: Path) -> dict:
     if not fs.isOpened():
         raise ValueError(f"OpenCV cannot read the calibration file {path}")
     try:
-        entries = {}
+        entries: dict[str, object] = {}
         root = fs.root()
         for key in root.keys():  # noqa: SIM118 (a cv2.FileNode is not iterable)
             node = root.getNode(key)
@@ -170,11 +170,11 @@ class CameraPublisher:
             raise ValueError(f"frame is {frame.shape[1]}×{frame.shape[0]}; the calibration is for "
                              f"{cal.width}×{cal.height}")
         if self.encoding == "mono8" and frame.ndim == 3:
-            frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+            frame = np.asarray(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), np.uint8)
         elif self.encoding == "bgr8" and frame.ndim == 2:
-            frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+            frame = np.asarray(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), np.uint8)
         if self._maps is not None:
-            frame = cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+            frame = np.asarray(cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR), np.uint8)
         header = Header(Time.from_ns(stamp_ns), CAMERA_FRAME_ID)
         info = CameraInfo(header=header, height=cal.height, width=cal.width, d=self._published_D,
                           k=cal.K.reshape(-1), p=np.hstack([cal.K, np.zeros((3, 1))]).reshape(-1))

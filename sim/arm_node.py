@@ -177,8 +177,9 @@ class ArmNode:
                     log.info("lockstep: no command for frame stamped %d within %.3f s; holding still",
                              stamp_ns, self.settings.lockstep_timeout)
                     break
-                if self._poll_command(min(remaining, 0.05)) and self._command.stamp_ns >= stamp_ns:
-                    velocity = self._command.velocity
+                command = self._command if self._poll_command(min(remaining, 0.05)) else None
+                if command is not None and command.stamp_ns >= stamp_ns:
+                    velocity = command.velocity
                     break
             self.sim.step(velocity, period)
 
@@ -195,8 +196,11 @@ class ArmNode:
                 continue
             self._poll_command()
             command = self._command
-            fresh = command is not None and time.monotonic() - command.received <= self.settings.deadman
-            self.sim.step(command.velocity if fresh else self._zero(), (due - ticks) * period)
+            if command is None or time.monotonic() - command.received > self.settings.deadman:
+                velocity = self._zero()
+            else:
+                velocity = command.velocity
+            self.sim.step(velocity, (due - ticks) * period)
             self.dropped += due - ticks - 1
             ticks = due
             self.publish()

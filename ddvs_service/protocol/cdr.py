@@ -94,7 +94,7 @@ class CdrWriter:
 
     def uint8_sequence(self, data: bytes | memoryview | NDArray[np.uint8]) -> None:
         """`sequence<uint8>`: count then the bytes, appended without an intermediate copy."""
-        view = memoryview(data).cast("B") if not isinstance(data, bytes) else data
+        view = data if isinstance(data, bytes) else (data.data if isinstance(data, np.ndarray) else data).cast("B")
         self.uint32(len(view))
         self._raw(view)
 

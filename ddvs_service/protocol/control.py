@@ -3,7 +3,7 @@
 Every message carries `protocol_version` (= `PROTOCOL_VERSION`); unknown fields are rejected (`extra="forbid"`),
 and non-finite floats too. Units: times in integer nanoseconds since the Unix epoch (`*_ns`), latencies in
 milliseconds, twists `[v (m/s); ω (rad/s)]` in the current camera frame, pixels as in `ddvs_service.camera`.
-The error vector `e` and `error_norm` are the decoupled servo error of EQUATIONS.md (eq. numbers there).
+The error vector `e` and `error_norm` are the decoupled servo error of docs/equations.md (eq. numbers there).
 
 Commands travel as the payload of a Zenoh query on `…/servo/command`; the reply is a `Reply`.
 `parse_command` / `parse_message` turn bytes into models and raise only `InvalidMessage`; `dump` is the inverse.

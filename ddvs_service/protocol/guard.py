@@ -115,13 +115,15 @@ class CommandGuard:
         try:
             msg = decode_twist_stamped(payload)
         except ProtocolError as exc:
-            return self._reject("malformed", topic, key, str(exc))
+            self._reject("malformed", topic, key, str(exc))
+            return None
         if not self._fresh(topic, key, msg.header.stamp.to_ns()):
             return None
         v, w = float(np.linalg.norm(msg.linear)), float(np.linalg.norm(msg.angular))  # finite: the decoder checks
         if v > self.limits.linear or w > self.limits.angular:
-            return self._reject("out_of_range", topic, key, f"‖v‖ = {v:.6g} m/s, ‖ω‖ = {w:.6g} rad/s; expected at "
-                                f"most {self.limits.linear} m/s and {self.limits.angular} rad/s")
+            self._reject("out_of_range", topic, key, f"‖v‖ = {v:.6g} m/s, ‖ω‖ = {w:.6g} rad/s; expected at "
+                         f"most {self.limits.linear} m/s and {self.limits.angular} rad/s")
+            return None
         self.accepted += 1
         return msg
 
@@ -133,13 +135,11 @@ class CommandGuard:
         try:
             msg = decode_joint_state(payload)
         except ProtocolError as exc:
-            return self._reject("malformed", topic, key, str(exc))
+            self._reject("malformed", topic, key, str(exc))
+            return None
         stop = msg.velocity.size > 0 and not np.any(msg.velocity)
         if not stop and not self._fresh(topic, key, msg.header.stamp.to_ns()):
             return None
-        if not msg.name or msg.velocity.size != len(msg.name):
-            return self._reject("no_velocity", topic, key, f"{msg.velocity.size} velocities for joints {msg.name}; "
-                                "expected one velocity per named joint")
         return self._joint_command(topic, key, msg)
 
     def velocity_array(self, key: str, payload: bytes | bytearray | memoryview,
@@ -163,17 +163,25 @@ class CommandGuard:
                                                           velocity=data))
 
     def _joint_command(self, topic: str, key: str, msg: JointState) -> JointState | None:
+        if not msg.name or msg.velocity.size != len(msg.name):
+            self._reject("no_velocity", topic, key, f"{msg.velocity.size} velocities for joints {msg.name}; "
+                         "expected one velocity per named joint")
+            return None
         if len(set(msg.name)) != len(msg.name):
-            return self._reject("malformed", topic, key, f"joint names {msg.name} repeat; expected each once")
+            self._reject("malformed", topic, key, f"joint names {msg.name} repeat; expected each once")
+            return None
         if not np.all(np.isfinite(msg.velocity)):
-            return self._reject("non_finite", topic, key, f"velocities {msg.velocity.tolist()}")
+            self._reject("non_finite", topic, key, f"velocities {msg.velocity.tolist()}")
+            return None
         for name, qd in zip(msg.name, msg.velocity.tolist(), strict=True):
             bound = self.limits.joint_bound(name)
             if bound is None:
-                return self._reject("unknown_joint", topic, key, f"joint {name!r}; expected one of "
-                                    f"{list(self.limits.joint_names)}")
+                self._reject("unknown_joint", topic, key, f"joint {name!r}; expected one of "
+                             f"{list(self.limits.joint_names)}")
+                return None
             if abs(qd) > bound:
-                return self._reject("out_of_range", topic, key, f"joint {name!r} at {qd:.6g}; expected |q̇| ≤ {bound}")
+                self._reject("out_of_range", topic, key, f"joint {name!r} at {qd:.6g}; expected |q̇| ≤ {bound}")
+                return None
         self.accepted += 1
         return msg
 

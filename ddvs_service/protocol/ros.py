@@ -165,6 +165,8 @@ class Image:
         fmt = ENCODINGS[self.encoding]
         dtype = fmt.dtype.newbyteorder(">" if self.is_bigendian else "<")
         size = fmt.dtype.itemsize
+        shape: tuple[int, ...]
+        strides: tuple[int, ...]
         if fmt.channels == 1:
             shape, strides = (self.height, self.width), (self.step, size)
         else:
