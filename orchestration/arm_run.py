@@ -7,8 +7,8 @@ Sequence:
 2. Start `ddvs sim arm --start start` (camera at reference · displacement), `ddvs serve` and `ddvs bridge`, each in
    its own process, logs in `<out>/logs/`. Topology: the sim listens on one loopback port, the service on another;
    the service, the bridge and this process connect to the ports they need (a full mesh; multicast scouting off).
-3. Wait for the service's first status (it has the camera info then), upload I* with `set_reference` (source
-   upload, with the template ROI), then `start`. The service globally initialises the first frame against I*.
+3. Upload I* with `set_reference` (source upload, with the template ROI) until the service accepts it (it needs
+   the camera info first), then `start`. The service globally initialises the first frame against I*.
 4. Record the run into a bag (`clients.bag_recorder.BagRecorder`: frames, camera info, twists, joint states,
    reference, status, state, ground truth, configuration; meta holds `reference_pose`) until the servo is
    CONVERGED for `settle_images` images, or `max_images` / `time_limit` is reached.
@@ -64,7 +64,8 @@ class ArmRunSettings:
     images required before finishing; `robot`/`prefix` of the keys; `launch` per child name how it starts
     (default: loopback mesh, this interpreter); `driver_session` the `SessionConfig` fields of this process's session
     (default: a peer connecting to the sim's and the service's loopback ports); `start_servo` False: `open_arm_run`
-    uploads the reference but leaves the `start` to the caller (`ArmRun.command(Command(op="start"))`)."""
+    uploads the reference but leaves the `start` to the caller (`ArmRun.command(Command(op="start"))`);
+    `ros_domain_id` runs every node in ROS 2 mode over rmw_zenoh in that domain (docs/ros2.md; realtime clock)."""
 
     out_dir: Path
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
@@ -83,8 +84,11 @@ class ArmRunSettings:
     launch: Mapping[str, ChildLaunch] = field(default_factory=dict)
     driver_session: Mapping[str, Any] | None = None
     start_servo: bool = True
+    ros_domain_id: int | None = None
 
     def __post_init__(self) -> None:
+        if self.ros_domain_id is not None and self.clock != "realtime":
+            raise ValueError("ROS 2 mode needs the realtime clock: ros2_control commands carry no stamp for lockstep")
         unknown = sorted(set(self.launch) - set(CHILDREN))
         if unknown:
             raise ValueError(f"launch names unknown children {unknown}; expected some of {list(CHILDREN)}")
@@ -154,6 +158,7 @@ def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> dict
         # levels 3: the pyramid of the measured arm runs (the service's default is the engine's, 8 at most)
         "registration": {"template_size": list(settings.template), "levels": 3, "global_init": True},
         "control": {"law": settings.law, "gains": settings.gain, "stop_threshold": settings.stop_threshold},
+        "ros": {"domain_id": settings.ros_domain_id},
     }
 
 
@@ -172,9 +177,10 @@ class ArmRun:
                  session: Any, started: float) -> None:
         from clients.monitor import Monitor
         from ddvs_service.protocol import Keys
+        from ddvs_service.protocol.ros_settings import RosSettings
 
         self.settings, self.session, self.started = settings, session, started
-        self.keys = Keys(settings.prefix, settings.robot)
+        self.keys = Keys(settings.prefix, settings.robot, RosSettings(domain_id=settings.ros_domain_id))
         self.log_dir = settings.out_dir / "logs"
         self._stack, self._commands = stack, commands
         self._killed: set[str] = set()  # killed on purpose and not restarted yet: not an error
@@ -201,6 +207,20 @@ class ArmRun:
         args = [a for a in self._commands[name] if a != "--fresh"]
         self.children[name] = self._start(name, args, append=True)
         self._killed.discard(name)
+
+    def command_when_ready(self, command: Any, poll_s: float = 0.5) -> None:
+        """Send `command` until the service accepts it, within the run's time limit: a service that has no camera
+        info yet (it answers no frame while IDLE) refuses a reference."""
+        while True:
+            self.check_children()
+            try:
+                self.command(command)
+                return
+            except RuntimeError as exc:
+                if time.monotonic() - self.started > self.settings.time_limit:
+                    raise RuntimeError(f"the service did not accept {command.op} within the time limit ({exc}); "
+                                       f"see {self.log_dir}") from exc
+            time.sleep(poll_s)
 
     def command(self, command: Any) -> None:
         """Send a `ddvs_service.protocol.Command` to the service; `RuntimeError` when refused or unanswered (30 s)."""
@@ -244,6 +264,8 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
         serve["zenoh"] = {}  # the launch flags give the endpoints
     (out / "serve.json").write_text(json.dumps(serve, indent=2))
     common = ["--prefix", settings.prefix, "--robot", settings.robot]
+    if settings.ros_domain_id is not None:
+        common += ["--ros-domain-id", str(settings.ros_domain_id)]
     loopback = {
         "sim": ["--listen", f"tcp/127.0.0.1:{sim_port}"],
         "serve": [],
@@ -263,10 +285,6 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
     with ExitStack() as stack:
         session = stack.enter_context(open_session(driver))
         run = ArmRun(settings, stack, commands, session, started)
-        while not run.monitor.status_received.wait(0.2):
-            run.check_children()
-            if time.monotonic() - started > settings.time_limit:
-                raise RuntimeError(f"no status from the service within the time limit; see {out / 'logs'}")
         meta = {"reference_pose": T_world_ref.reshape(-1).tolist(), "law": settings.law,
                 "template": list(settings.template), "clock": settings.clock, "fps": settings.fps,
                 "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene)}
@@ -280,7 +298,7 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
         stack.callback(recorder_thread.join)
         stack.callback(stop_recording.set)
         upload = ReferenceImage(format="png", data=encode_upload(reference, "png"))
-        run.command(Command(op="set_reference", source="upload", image=upload))
+        run.command_when_ready(Command(op="set_reference", source="upload", image=upload))
         if settings.start_servo:
             run.command(Command(op="start"))
         yield run
