@@ -60,3 +60,24 @@ def test_points_outside_the_current_image_are_nan(texture):
     shifted = np.array([[1.0, 0.0, 400.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # the ROI's right part leaves the image
     r = residual_image(texture, texture, ROI, shifted, np.ones((1, 1)), 0.0)
     assert np.isnan(r[:, -1]).all() and np.isfinite(r[:, 0]).all()
+
+
+def test_the_servo_pipeline_gives_the_residual_of_its_newest_estimate(texture):
+    """Through the service's pipeline (planar model): after a step on a frame 3 px from the reference, the residual
+    over the ROI is small; the same frame against an untracked pipeline (identity) is not."""
+    from ddvs_service.camera import Intrinsics
+    from ddvs_service.service.config import ServiceConfig
+    from ddvs_service.service.pipeline import ServoPipeline
+
+    reference = texture[200:440, 250:570]
+    frame = cv2.warpAffine(reference, np.array([[1.0, 0.0, 3.0], [0.0, 1.0, -2.0]]), (320, 240))
+    camera = {"fx": 420.0, "fy": 420.0, "cx": 159.5, "cy": 119.5, "width": 320, "height": 240}
+    config = ServiceConfig.model_validate({"intrinsics": camera, "registration": {"template_size": [120, 90]}})
+    pipeline = ServoPipeline(config, Intrinsics(**camera))
+    assert pipeline.residual(frame) is None  # no reference yet
+    roi = pipeline.set_reference(reference)
+    before = pipeline.residual(frame)
+    pipeline.step(frame)
+    after = pipeline.residual(frame)
+    assert after.shape == before.shape == (roi[3], roi[2])
+    assert np.sqrt(np.nanmean(after**2)) < 0.2 * np.sqrt(np.nanmean(before**2))

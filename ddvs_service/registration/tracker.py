@@ -55,6 +55,11 @@ class Tracker:
         """Current estimate (3×3, det 1), reference → current pixels."""
         return self._G.copy()
 
+    @property
+    def photometric(self) -> tuple[NDArray[np.float64], float]:
+        """The gains `S` (node values, shape `gain_grid`) and bias `β` of the current state (eq. (4))."""
+        return self._gains.copy(), self._beta
+
     def reset(self, G: ArrayLike | None = None) -> None:
         """Restart from `G` (identity when None; any scale, positive determinant), unit gains, zero bias."""
         self._G = np.eye(3) if G is None else sl3_normalize(np.asarray(G, dtype=np.float64).reshape(3, 3))

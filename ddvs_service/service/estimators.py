@@ -19,6 +19,7 @@ from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.reacquisition import Reacquisition
+from ddvs_service.registration.residual import residual_image
 from ddvs_service.registration.tracker import Tracker
 from ddvs_service.service.config import RegistrationSettings
 
@@ -67,6 +68,12 @@ class PlanarEstimator:
         """Force a global re-initialisation on the next frame."""
         self._needs_init = True
 
+    def residual(self, grey: NDArray[np.float32]) -> NDArray[np.float32]:
+        """The residual image of `grey` over the ROI under the current state (`registration.residual`)."""
+        gains, beta = self._tracker.photometric
+        s = self.settings
+        return residual_image(self.reference, grey, self.roi, self._tracker.G, gains, beta, s.gamma, s.defocus_px)
+
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
         message = ""
         if self._needs_init and self._acquire.enabled:
@@ -109,6 +116,10 @@ class GeneralEstimator:
         """Force a global re-acquisition of `G` and `e` on the next frame (the tracker also does so by itself
         after `lost_after` failed frames)."""
         self._tracker.lose()
+
+    def residual(self, grey: NDArray[np.float32]) -> None:
+        """Not available for the general model yet (its warp has the parallax term of eq. (2), not `G` alone)."""
+        return None
 
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
         result = self._tracker.track(grey)

@@ -181,6 +181,14 @@ class ServoPipeline:
             timings_ms={"registration": (t1 - t0) * 1e3, "control": (t2 - t1) * 1e3},
         )
 
+    def residual(self, frame: NDArray) -> NDArray[np.float32] | None:
+        """The registration's residual image of `frame` over the ROI (warped current − reference after the
+        photometric model, grey levels; `registration.residual`) under the newest estimate; None without a reference
+        and with the general model (not available yet)."""
+        if self._estimator is None:
+            return None
+        return self._estimator.residual(to_grey(frame))
+
     def _control(self, est: Estimate) -> ControlOutput | None:
         assert self._law is not None
         try:
