@@ -11,7 +11,8 @@ Sequence:
    the camera info first), then `start`. The service globally initialises the first frame against I*.
 4. Record the run into a bag (`clients.bag_recorder.BagRecorder`: frames, camera info, twists, joint states,
    reference, status, state, ground truth, configuration; meta holds `reference_pose`) until the servo is
-   CONVERGED for `settle_images` images, or `max_images` / `time_limit` is reached.
+   CONVERGED for `settle_images` images, or `max_images` / `time_limit` is reached; `<out>/foxglove-layout.json`
+   is the Foxglove layout of the run's topics.
 5. Stop every child (SIGINT, then SIGKILL after a grace period) — also on an exception or Ctrl-C.
 
 The ROI: `template` (w, h) centred on the control point p* (the principal point by default), as the paper's 70×70.
@@ -249,6 +250,7 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
     from clients.bag import BagWriter
     from clients.bag_recorder import BagRecorder
     from clients.channels import run_channels
+    from clients.foxglove_layout import layout_json
     from clients.record import recording_meta
     from ddvs_service.protocol import Command, ReferenceImage, SessionConfig, encode_upload, open_session
 
@@ -289,6 +291,7 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
                 "template": list(settings.template), "clock": settings.clock, "fps": settings.fps,
                 "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene)}
         writer = BagWriter(out / "recording", run_channels(run.keys), recording_meta(run.keys, meta))
+        (out / "foxglove-layout.json").write_text(layout_json(run.keys), encoding="utf-8")
         stack.callback(writer.close)
         recorder = BagRecorder(session, run.keys, writer)
         stack.callback(recorder.close)

@@ -88,7 +88,8 @@ def recording_markdown(recording: dict[str, Any]) -> list[str]:
         *(f"| `{topic}` | {count} |" for topic, count in sorted(recording["messages"].items())),
         "",
         f"- Foxglove: *Open local file* and select both `{ros_file}` and `{json_file}`, then *Layouts → Import from "
-        "file* `docs/foxglove/ddvs-layout.json` (current image, reference, error norm, twist, state).",
+        f"file* `{Path(recording['bag']).parent / 'foxglove-layout.json'}` (this run's topics: current image, "
+        "reference, error norm, twist, state).",
         f"- ROS 2 (Jazzy or later, with `rosbag2_storage_mcap`): `ros2 bag info {recording['bag']}`, "
         f"`ros2 bag play {recording['bag']}` (the CDR topics: images, camera info, twist, joint states, reference).",
         f"- Python: `rosbags.highlevel.AnyReader([Path('{recording['bag']}')])`; `ddvs plot {recording['bag']}`.",
