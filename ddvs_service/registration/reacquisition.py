@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.registration.general import GeneralRegistration
-from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, reacquire
+from ddvs_service.registration.global_init import GlobalInitConfig, GlobalInitializer, InitResult, reacquire
 from ddvs_service.registration.planar import PlanarRegistration
 
 F32 = NDArray[np.float32]
@@ -26,12 +26,14 @@ F64 = NDArray[np.float64]
 @dataclass(frozen=True)
 class Acquisition:
     """`status` "OK" (start from `G`), "LOST" (no confident estimate: `reason`) or "OFF" (re-acquisition disabled);
-    `contradicts`: an OK `G` far from the tracker's own estimate (`global_init.reacquire`)."""
+    `contradicts`: an OK `G` far from the tracker's own estimate (`global_init.reacquire`); `found`: the
+    initialiser's whole result (None when off)."""
 
     status: Literal["OK", "LOST", "OFF"]
     G: F64 | None
     reason: str
     contradicts: bool = False
+    found: InitResult | None = None
 
 
 class Reacquisition:
@@ -41,20 +43,19 @@ class Reacquisition:
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
                  config: GlobalInitConfig | None = None) -> None:
         self.engine = engine
-        self._initializer = (None if config is None else
-                             GlobalInitializer(config, engine=engine, general=general))
+        self.initializer = None if config is None else GlobalInitializer(config, engine=engine, general=general)
 
     @property
     def enabled(self) -> bool:
-        return self._initializer is not None
+        return self.initializer is not None
 
     def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
         """Initialise `current` against the engine's reference and ROI; `tracking_G`: the tracker's own estimate,
         to report a strong contradiction."""
-        if self._initializer is None:
+        if self.initializer is None:
             return Acquisition("OFF", None, "re-acquisition is off")
         prepared = self.engine.prepared
-        found, contradicts = reacquire(self._initializer, prepared.image, prepared.roi, current, tracking_G)
+        found, contradicts = reacquire(self.initializer, prepared.image, prepared.roi, current, tracking_G)
         if found.status == "OK" and found.G is not None:
-            return Acquisition("OK", found.G, found.reason, contradicts)
-        return Acquisition("LOST", None, found.reason)
+            return Acquisition("OK", found.G, found.reason, contradicts, found)
+        return Acquisition("LOST", None, found.reason, found=found)
