@@ -34,6 +34,7 @@ from ddvs_service.protocol import (
     encode_twist_stamped,
     image_from_array,
 )
+from ddvs_service.protocol.ros import Float64MultiArray, decode_float64_multi_array, encode_float64_multi_array
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T = TS.types
@@ -92,6 +93,13 @@ def rb_joint_state(m: JointState):
     )
 
 
+def rb_float64_multi_array(m: Float64MultiArray):
+    dim = T["std_msgs/msg/MultiArrayDimension"]
+    dims = [dim(label=label, size=size, stride=stride) for label, size, stride in m.dims]
+    layout = T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=m.data_offset)
+    return T["std_msgs/msg/Float64MultiArray"](layout=layout, data=m.data)
+
+
 # --- strategies -------------------------------------------------------------------------------------------------------
 
 floats = st.floats(allow_nan=False, allow_infinity=False, width=64)
@@ -143,11 +151,21 @@ def joint_states(draw):
     return JointState(draw(headers), names, *arrays)
 
 
+uint32s = st.integers(0, 2**32 - 1)
+float64_multi_arrays = st.builds(
+    Float64MultiArray,
+    st.lists(floats, max_size=9),
+    st.lists(st.tuples(st.text(max_size=8), uint32s, uint32s), max_size=3),
+    uint32s,
+)
+
 CODECS = {
     "sensor_msgs/msg/Image": (images(), encode_image, decode_image, rb_image),
     "sensor_msgs/msg/CameraInfo": (camera_infos, encode_camera_info, decode_camera_info, rb_camera_info),
     "geometry_msgs/msg/TwistStamped": (twists, encode_twist_stamped, decode_twist_stamped, rb_twist),
     "sensor_msgs/msg/JointState": (joint_states(), encode_joint_state, decode_joint_state, rb_joint_state),
+    "std_msgs/msg/Float64MultiArray": (float64_multi_arrays, encode_float64_multi_array, decode_float64_multi_array,
+                                       rb_float64_multi_array),
 }
 
 
