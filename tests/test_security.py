@@ -311,6 +311,27 @@ def test_observers_can_be_denied_frames(certs: Path) -> None:
         assert watched.payloads == []
 
 
+def test_no_escape_from_the_robots_exact_keys(certs: Path) -> None:
+    """A role cannot reach beyond its robot's exact keys: the bridge of this robot cannot command another robot's arm,
+    and its wildcard subscription gets no frame (a session's wildcard sees only what the session itself may receive:
+    its own puts and what its exact subscriptions are granted)."""
+    other = Keys("ddvs", "other_robot")
+    with mtls_network(certs) as net:
+        plant, bridge, service = (mtls_client(net, certs, r) for r in ("plant", "bridge", "service"))
+        commands = Inbox(plant, KEYS.arm_joint_velocity)
+        foreign = Inbox(plant, other.arm_joint_velocity)
+        wildcard = Inbox(bridge, "ddvs/**")
+        frames = Inbox(service, KEYS.camera_image)
+        time.sleep(SETTLE_S)
+        assert _put_until(bridge, KEYS.arm_joint_velocity, b"own", commands)
+        assert _put_until(plant, KEYS.camera_image, b"frame", frames)
+        for _ in range(5):
+            bridge.put(other.arm_joint_velocity, b"foreign")
+            plant.put(KEYS.camera_image, b"frame")
+        time.sleep(WAIT_S)
+        assert foreign.payloads == [] and b"frame" not in wildcard.payloads
+
+
 def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_certs: Path) -> None:
     with mtls_network(certs) as net:
         port = net.endpoint.rsplit(":", 1)[1]
