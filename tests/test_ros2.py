@@ -44,7 +44,14 @@ from ddvs_service.protocol.ros import (
     encode_trigger_request,
     encode_trigger_response,
 )
-from ddvs_service.protocol.ros_graph import SENSOR_DATA_QOS, GraphEntity, GraphNode, RosQos, parse_token
+from ddvs_service.protocol.ros_graph import (
+    SENSOR_DATA_QOS,
+    GraphEntity,
+    GraphNode,
+    RosQos,
+    discover,
+    parse_token,
+)
 from ddvs_service.protocol.ros_settings import RosSettings
 
 DESIGN_ZID = "aac3178e146ba6f1fc6e6a4085e77f21"
@@ -353,6 +360,10 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
         thread.start()
         try:
             time.sleep(1.0)  # discovery
+            publishers = {(e.topic, e.dds_type, e.node.name) for e in discover(session, DOMAIN) if e.kind == "MP"}
+            assert ("/joint_states", "sensor_msgs::msg::dds_::JointState_", "joint_state_broadcaster") in publishers
+            assert ("/forward_velocity_controller/commands", "std_msgs::msg::dds_::Float64MultiArray_",
+                    "ddvs_bridge") in publishers
             q = [0.0, -1.2, 1.4, -1.8, -1.57, 0.3]
             for seq in range(1, 40):
                 now = time.time_ns()

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import xxhash
+import zenoh
 
 ADMIN_SPACE = "@ros2_lv"
 EntityKind = Literal["NN", "MP", "MS", "SS", "SC"]
@@ -150,3 +151,18 @@ def parse_token(keyexpr: str) -> GraphEntity:
         raise ValueError(f"{keyexpr!r}: QoS {parts[12]!r} does not have rmw_zenoh's 6 ':'-separated fields")
     return GraphEntity(parts[2], int(parts[3]), int(parts[4]), kind, node, parts[9].replace("%", "/"), parts[10],
                        parts[11], parts[12])
+
+
+def discover(session: zenoh.Session, domain_id: int, timeout: float = 1.0) -> list[GraphEntity]:
+    """Every entity of ROS domain `domain_id` in the graph now, as rmw_zenoh builds its graph cache (a liveliness
+    query on `@ros2_lv/<domain>/**`): what `ros2 node list` / `ros2 topic list` would show. Tokens that do not parse
+    as rmw_zenoh's are skipped."""
+    entities = []
+    for reply in session.liveliness().get(f"{ADMIN_SPACE}/{domain_id}/**", timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            entities.append(parse_token(str(reply.ok.key_expr)))
+        except ValueError:
+            continue
+    return entities
