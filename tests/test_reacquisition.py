@@ -63,3 +63,19 @@ def test_general_tracker_reacquires_only_when_asked(scene: PlanarScene) -> None:
     assert warp_rms(on.G, H, ROI) < 0.1
     off = GeneralTracker(engine, Reacquisition(engine.planar, engine, config=None)).track(current)
     assert not (off.converged and warp_rms(off.G, H, ROI) < 1.0)
+
+
+@pytest.mark.parametrize("model", ["planar", "general"])
+def test_service_global_init_setting_is_honoured_by_both_models(scene: PlanarScene, model: str) -> None:
+    from ddvs_service.service.config import RegistrationSettings
+    from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
+
+    H = rotated(scene, 60.0)
+    reference, current = scene.render(), scene.render(H)
+    estimator = GeneralEstimator if model == "general" else PlanarEstimator
+    on = estimator(reference, ROI, RegistrationSettings(model=model)).estimate(current, (159.5, 119.5))
+    assert on.tracked, on.message
+    assert warp_rms(on.G, H, ROI) < 0.1
+    off = estimator(reference, ROI, RegistrationSettings(model=model, global_init=False)).estimate(current,
+                                                                                                 (159.5, 119.5))
+    assert not (off.tracked and warp_rms(off.G, H, ROI) < 1.0)
