@@ -38,15 +38,14 @@ class Monitor:
         self._lock = threading.Lock()
         self._arrivals: dict[str, collections.deque[float]] = {name: collections.deque() for name in RATE_STREAMS}
         self._status: dict[str, Any] | None = None
-        self._state: dict[str, Any] | None = None
-        self._audit: dict[str, Any] | None = None
+        self._latest: dict[str, dict[str, Any] | None] = {"state": None, "audit": None}  # newest JSON message
         self.status_received = threading.Event()
         self._subscribers = [session.declare_subscriber(keys.key(key), self._on_arrival(name))
                              for name, key in RATE_STREAMS.items()]
-        self._subscribers.append(session.declare_subscriber(keys.servo_state, self._on_state))
+        self._subscribers.append(session.declare_subscriber(keys.servo_state, self._on_json("state")))
         from ddvs_service.protocol.audit import audit_key
 
-        self._subscribers.append(session.declare_subscriber(audit_key(keys.base), self._on_audit))
+        self._subscribers.append(session.declare_subscriber(audit_key(keys.base), self._on_json("audit")))
 
     def _on_arrival(self, name: str):
         def callback(sample: zenoh.Sample) -> None:
@@ -64,21 +63,16 @@ class Monitor:
 
         return callback
 
-    def _on_state(self, sample: zenoh.Sample) -> None:
-        try:
-            state = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            return
-        with self._lock:
-            self._state = state
+    def _on_json(self, name: str):
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                message = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            with self._lock:
+                self._latest[name] = message
 
-    def _on_audit(self, sample: zenoh.Sample) -> None:
-        try:
-            audit = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            return
-        with self._lock:
-            self._audit = audit
+        return callback
 
     def close(self) -> None:
         for subscriber in self._subscribers:
@@ -95,7 +89,7 @@ class Monitor:
                 while arrivals and arrivals[0] < now - self.window:
                     arrivals.popleft()
                 rates[name] = round(len(arrivals) / self.window, 2)
-            status, state, audit = self._status, self._state, self._audit
+            status, state, audit = self._status, self._latest["state"], self._latest["audit"]
         snap: dict[str, Any] = {"state": None, "seq": None, "has_reference": None, "error_norm": None, "error": None,
                                 "twist": None, "rates_hz": rates, "latency_ms": None, "counters": None,
                                 "message": "", "audit": audit}
@@ -151,6 +145,7 @@ def render(snap: dict[str, Any], title: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
+    from ddvs_service.protocol.ros_settings import add_ros_arguments
 
     parser.add_argument("--foxglove", action="store_true",
                         help="serve a live Foxglove view (WebSocket, foxglove.websocket.v1) instead of the terminal's")
@@ -165,12 +160,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
     add_zenoh_arguments(parser)
+    add_ros_arguments(parser)  # ROS 2 mode: the ROS-typed topics are on rmw_zenoh keys (docs/ros2.md)
 
 
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
+    from ddvs_service.protocol.ros_settings import ros_settings_from_args
 
-    keys = Keys(args.prefix, args.robot)
+    keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
     if args.foxglove:
         return _serve_foxglove(args, keys)
     with open_session(session_config_from_args(args)) as session:
