@@ -25,6 +25,7 @@ def recording_meta(keys: Keys, extra: dict[str, Any] | None = None) -> dict[str,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
+    from ddvs_service.protocol.ros_settings import add_ros_arguments
 
     parser.add_argument("out", help="new (or empty) bag directory; with --recover: the bag of a killed recorder")
     parser.add_argument("--recover", action="store_true",
@@ -45,6 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
     add_zenoh_arguments(parser)
+    add_ros_arguments(parser)  # ROS 2 mode: the ROS-typed topics are on rmw_zenoh keys (docs/ros2.md)
 
 
 def _parse_meta(items: list[str]) -> dict[str, Any]:
@@ -68,12 +70,13 @@ def run(args: argparse.Namespace) -> int:
     from clients.channels import run_channels
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
+    from ddvs_service.protocol.ros_settings import ros_settings_from_args
 
     setup_logging("INFO")
     if args.recover:
         print(json.dumps(recover_bag(args.out, args.compression), indent=2))
         return 0
-    keys = Keys(args.prefix, args.robot)
+    keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
     writer = BagWriter(args.out, run_channels(keys, args.frames), recording_meta(keys, _parse_meta(args.meta)),
                        compression=args.compression, flush_period_s=args.flush_period)
     stop = threading.Event()
