@@ -132,14 +132,14 @@ class CameraPublisher:
     """Publishes frames (grey or BGR uint8, the calibration's size) with their camera info on `session`."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, calibration: Calibration, encoding: str = "mono8",
-                 rectify: bool = True) -> None:
+                 rectify: bool = True, frame_id: str = CAMERA_FRAME_ID) -> None:
         import cv2
 
         from ddvs_service.protocol.endpoints import Endpoints
 
         if encoding not in ENCODINGS:
             raise ValueError(f"encoding {encoding!r} not supported; expected one of {ENCODINGS}")
-        self.calibration, self.encoding = calibration, encoding
+        self.calibration, self.encoding, self.frame_id = calibration, encoding, frame_id
         size = (calibration.width, calibration.height)
         self._maps = (cv2.initUndistortRectifyMap(calibration.K, calibration.D, None, calibration.K, size,
                                                   cv2.CV_16SC2) if rectify and calibration.distorted else None)
@@ -175,7 +175,7 @@ class CameraPublisher:
             frame = np.asarray(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), np.uint8)
         if self._maps is not None:
             frame = np.asarray(cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR), np.uint8)
-        header = Header(Time.from_ns(stamp_ns), CAMERA_FRAME_ID)
+        header = Header(Time.from_ns(stamp_ns), self.frame_id)
         info = CameraInfo(header=header, height=cal.height, width=cal.width, d=self._published_D,
                           k=cal.K.reshape(-1), p=np.hstack([cal.K, np.zeros((3, 1))]).reshape(-1))
         self._info.put(encode_camera_info(info))
@@ -221,6 +221,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=None, help="publishing rate (default: the source's)")
     parser.add_argument("--encoding", choices=ENCODINGS, default="mono8", help="published encoding (default mono8)")
     parser.add_argument("--raw", action="store_true", help="publish distorted frames as read (no rectification)")
+    parser.add_argument("--frame-id", default=CAMERA_FRAME_ID,
+                        help="header.frame_id: the camera's optical frame in the robot's TF tree, which the servo's "
+                             f"twist is expressed in (MoveIt Servo needs it there; default {CAMERA_FRAME_ID!r})")
     parser.add_argument("--loop", action="store_true", help="replay a video file from the start when it ends")
     parser.add_argument("--frames", type=int, default=None, help="stop after this many frames")
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
@@ -263,7 +266,8 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config_from_args(args)) as session:
         keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
-        publisher = CameraPublisher(session, keys, calibration, args.encoding, rectify=not args.raw)
+        publisher = CameraPublisher(session, keys, calibration, args.encoding, rectify=not args.raw,
+                                    frame_id=args.frame_id)
         try:
             count = stream(capture, publisher, fps, stop, args.frames, args.loop)
         finally:
