@@ -124,3 +124,14 @@ def test_docs_key_table_matches_the_code() -> None:
         qos = f"{spec.priority}, {spec.congestion}{', express' if spec.express else ''}"
         row = f"| `<prefix>/<robot>/{spec.suffix}` | {spec.payload} | {spec.publisher} | {spec.subscribers} | {qos} |"
         assert f"{row} {spec.delivery} |" in text, f"docs/protocol.md lacks the row:\n{row} {spec.delivery} |"
+
+
+def test_docs_ros2_topic_table_matches_the_code() -> None:
+    text = (DOC.parent / "ros2.md").read_text(encoding="utf-8")
+    for name, spec in TOPICS.items():
+        if spec.ros_type is None:
+            continue
+        assert spec.ros_name is not None and spec.ros_qos is not None, name
+        row = (f"| `{name}` | `{spec.ros_name}` | `{spec.ros_type}` | `{spec.ros_qos.encode()}` | {spec.publisher} | "
+               f"{spec.subscribers} |")
+        assert row in text, f"docs/ros2.md lacks the row:\n{row}"
