@@ -1,10 +1,11 @@
-"""Latency overhead of TLS against plain TCP for 320×240 mono8 frames, publisher → router → subscriber (issue 10).
+"""Latency overhead of TLS against plain TCP for 320×240 mono8 frames, publisher → router → subscriber (issues 10, 22).
 
 Three processes per measurement: a Zenoh router (a Python session in router mode), a subscriber (this script with
 `--subscribe`) and the publisher (this script). Transports, all on loopback and measured in the same run:
 - `tcp`: plain TCP, no access control;
 - `tls`: mutual TLS (certificates from `scripts/make_dev_certs.sh`), no access control;
-- `tls+acl`: mutual TLS and the generated deny-by-default rules of `ddvs_service.protocol.security` (plant → service).
+- `tls+acl`: mutual TLS and the generated deny-by-default rules of `ddvs_service.protocol.security` (plant → service);
+- `tls+acl+audit`: the same rules with the real `ddvs router`, whose audit reads Zenoh's access-control trace.
 One-way latency = subscriber's `time.time_ns()` at the sample callback − the frame's header stamp (publisher's
 `time.time_ns()` just before `put`; one host, one clock). Shared memory is off so that every frame crosses the link.
 Rounds alternate the transports so that load from other processes on the machine hits all of them alike.
@@ -45,7 +46,7 @@ from ddvs_service.protocol.security import (  # noqa: E402
 
 W, H = 320, 240
 KEYS = Keys("ddvs", "bench")
-TRANSPORTS = ("tcp", "tls", "tls+acl")
+TRANSPORTS = ("tcp", "tls", "tls+acl", "tls+acl+audit")
 
 
 def free_port() -> int:
@@ -120,10 +121,10 @@ def spawn(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, __file__, *args], stdout=subprocess.PIPE, text=True)
 
 
-def wait_line(proc: subprocess.Popen[str], what: str) -> None:
+def wait_line(proc: subprocess.Popen[str], what: str, first_word: str = "ready") -> None:
     assert proc.stdout is not None
     line = proc.stdout.readline().strip()
-    if line != "ready":
+    if line.split(" ", 1)[0] != first_word:
         raise SystemExit(f"{what} did not start (said {line!r}, exit code {proc.poll()})")
 
 
@@ -134,9 +135,14 @@ def measure(transport: str, certs: Path, work: Path, frames: int, rate: float) -
         files[name] = work / f"{transport}-{name}.json"
         files[name].write_text(json.dumps(config))
     out = work / f"{transport}-latencies.json"
-    router = spawn("--router", str(files["router"]))
+    if transport.endswith("+audit"):
+        router = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "router", "--zenoh-config", str(files["router"]),
+                                   "--listen", cfg["router"]["listen"]["endpoints"][0]], stdout=subprocess.PIPE,
+                                  stderr=subprocess.DEVNULL, text=True, cwd=ROOT)
+    else:
+        router = spawn("--router", str(files["router"]))
     try:
-        wait_line(router, "router")
+        wait_line(router, "router", "router" if transport.endswith("+audit") else "ready")
         subscriber = spawn("--subscribe", str(files["service"]), "--count", str(frames), "--out", str(out))
         publisher = open_config(cfg["plant"])
         try:
