@@ -95,8 +95,10 @@ def _normalise(state: _State) -> None:
 
 
 class GeneralRegistration:
-    """The reference side prepared once (pyramid, ROI levels, parallax basis, buffers); `estimate` finds ρ* from
-    scratch, `track` registers a frame with ρ* held fixed."""
+    """The general engine on a prepared reference (its planar engine, on the same reference and workspace, is the
+    first stage of `estimate`): `estimate` finds ρ* from scratch, `track` registers a frame with ρ* held fixed.
+    `config.base` must agree with the reference's preparation (`PreparedReference.check_config`); `current`: the
+    current image's workspace, shared with engines that run in turn on the same reference."""
 
     def __init__(
         self,
