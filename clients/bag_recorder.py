@@ -28,7 +28,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 FRAME_QUEUE = 64
-IMAGE_KEYS = ("camera_image", "servo_reference")
 
 
 class _Stamped(Protocol):
@@ -43,7 +42,8 @@ def header_stamp_ns(key_name: str, payload: bytes) -> int:
     from ddvs_service.protocol import decode_camera_info, decode_image, decode_joint_state, decode_twist_stamped
 
     decoders: dict[str, Callable[[bytes], _Stamped]] = {
-        "camera_image": decode_image, "servo_reference": decode_image, "camera_info": decode_camera_info,
+        "camera_image": decode_image, "servo_reference": decode_image, "servo_residual": decode_image,
+        "camera_info": decode_camera_info,
         "servo_twist": decode_twist_stamped, "arm_joint_states": decode_joint_state,
     }
     return decoders[key_name](payload).header.stamp.to_ns()

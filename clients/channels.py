@@ -1,9 +1,11 @@
 """The channels a servo run is recorded and watched on: one per Zenoh key, named as its ROS topic, with its schema.
 
 Shared by the recorder (`clients/bag.py`, MCAP channels) and the Foxglove live view (`clients/foxglove_live.py`).
-ROS-typed keys (CDR payloads) become `cdr` channels whose schema is the full `ros2msg` definition
-(`ddvs_service.protocol.msgdefs`); JSON keys become `json` channels whose schema is the message's JSON schema
-(`ddvs_service/schemas/*.json`, the servo configuration's from its model). Topic names (`topic_name`) are the ROS
+The residual image (`servo/residual`) is among them: the service computes it only while someone subscribes, so a
+recorder or a watched live view makes it publish (at most 5 Hz). ROS-typed keys (CDR payloads) become `cdr`
+channels whose schema is the full `ros2msg` definition (`ddvs_service.protocol.msgdefs`); JSON keys become `json`
+channels whose schema is the message's JSON schema (`ddvs_service/schemas/*.json`, the servo configuration's from
+its model). Topic names (`topic_name`) are the ROS
 names of the keys (`Keys.ros_topic`); compressed frames go to `<image topic>/compressed`, as `image_transport`
 names them.
 """
@@ -23,7 +25,7 @@ JSON_SCHEMAS = {"servo_status": "status", "servo_state": "state_snapshot", "arm_
 """JSON key → file name (without `.json`) of its schema under `ddvs_service/schemas/`."""
 JSON_SCHEMA_NAMES = {"servo_status": "ddvs/Status", "servo_state": "ddvs/StateSnapshot",
                      "arm_ground_truth": "ddvs/GroundTruth", "servo_config": "ddvs/ServiceConfig"}
-ROS_KEYS = ("camera_image", "camera_info", "servo_twist", "arm_joint_states", "servo_reference")
+ROS_KEYS = ("camera_image", "camera_info", "servo_twist", "arm_joint_states", "servo_reference", "servo_residual")
 JSON_KEYS = ("servo_status", "servo_state", "arm_ground_truth", "servo_config")
 POSE_SUFFIX = "arm/camera_pose"
 """The live view's ground-truth camera pose (`foxglove.FrameTransform` `world → camera`) is `/<prefix>/<robot>/`

@@ -1,9 +1,9 @@
 """The Foxglove layout of a servo run, built with `foxglove.layouts` (foxglove-sdk) for one robot's topics.
 
-Top row: the current image (with its camera info) and the reference. Bottom row: the control error norm and the
-twist (v in m/s, ω in rad/s, camera frame) against time, the servo state over time and the newest `StateSnapshot`,
-and the camera pose in 3-D (ground-truth `world → camera` transforms of the live view). Not yet: a panel of the
-registration's residual image (the service does not publish it yet).
+Top row: the current image (with its camera info), the reference, and the registration's residual over the ROI
+(warped current − reference after the photometric model, `32FC1` grey levels shown from −64 to 64). Bottom row: the
+control error norm and the twist (v in m/s, ω in rad/s, camera frame) against time, the servo state over time and
+the newest `StateSnapshot`, and the camera pose in 3-D (ground-truth `world → camera` transforms of the live view).
 
 `python -m clients.foxglove_layout [--prefix P --robot R] > layout.json` writes it; the repository ships
 `docs/foxglove/ddvs-layout.json` for robot `robot0` (a test keeps it equal to this builder's output). Open it in
@@ -20,9 +20,14 @@ import foxglove.layouts as fl
 from clients.channels import pose_topic, topic_name
 from ddvs_service.protocol import Keys
 
+RESIDUAL_RANGE = 64.0
+"""Grey levels shown at the two ends of the residual image's scale."""
 
-def _image(topic: str, title: str, calibration: str | None = None) -> fl.ImagePanel:
+
+def _image(topic: str, title: str, calibration: str | None = None, value_range: float | None = None) -> fl.ImagePanel:
     mode = fl.ImageModeConfig(image_topic=topic, calibration_topic=calibration)
+    if value_range is not None:
+        mode.min_value, mode.max_value = -value_range, value_range
     return fl.ImagePanel(title=title, config=fl.ImageConfig(image_mode=mode))
 
 
@@ -40,6 +45,8 @@ def build_layout(keys: Keys) -> fl.Layout:
     top = fl.SplitContainer(direction="row", items=[
         fl.SplitItem(content=_image(t("camera_image"), "current image", calibration=t("camera_info"))),
         fl.SplitItem(content=_image(t("servo_reference"), "reference")),
+        fl.SplitItem(content=_image(t("servo_residual"), "residual: warped current − reference (grey levels)",
+                                    value_range=RESIDUAL_RANGE)),
     ])
     plots = fl.SplitContainer(direction="column", items=[
         fl.SplitItem(content=_plot("control error norm", [(f"{t('servo_status')}.error_norm", "‖ε̄‖")], "error")),

@@ -1,11 +1,15 @@
 """`ddvs monitor --foxglove`: a live Foxglove view of one servo, served with the Foxglove WebSocket protocol
 (`foxglove.websocket.v1`, foxglove-sdk) from its Zenoh keys.
 
-Channels: the channels of a run (`clients.channels.run_channels`: frames, camera info, twist, joint states and the
-reference as ROS 2 CDR with `ros2msg` schemas; status, state, ground truth and configuration as JSON with JSON
-schemas) and the ground-truth camera pose as `foxglove.FrameTransform` `world → camera` on
-`/<prefix>/<robot>/arm/camera_pose` (from `arm/ground_truth`, when a simulator publishes it). Payloads are forwarded
-as they arrive, logged at their arrival time; a channel nobody watches costs nothing (its samples are not copied).
+Channels: the channels of a run (`clients.channels.run_channels`: frames, camera info, twist, joint states, the
+reference and the registration's residual image as ROS 2 CDR with `ros2msg` schemas; status, state, ground truth
+and configuration as JSON with JSON schemas) and the ground-truth camera pose as `foxglove.FrameTransform`
+`world → camera` on `/<prefix>/<robot>/arm/camera_pose` (from `arm/ground_truth`, when a simulator publishes it).
+Payloads are forwarded as they arrive, logged at their arrival time; a channel nobody watches costs nothing (its
+samples are not copied).
+
+The service computes the residual (`servo/residual`) only while its key has a subscriber: this bridge subscribes
+it on Zenoh only while a Foxglove client subscribes its channel.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import json
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import foxglove
 import numpy as np
@@ -29,6 +33,7 @@ if TYPE_CHECKING:
     from ddvs_service.protocol import Keys
 
 log = logging.getLogger(__name__)
+RESIDUAL = "servo_residual"
 
 
 def pose_transform(camera_pose: list[float], stamp_ns: int) -> FrameTransform:
@@ -55,8 +60,14 @@ class FoxgloveBridge:
         self.channels: dict[str, foxglove.Channel] = {spec.key_name: self._channel(spec)
                                                       for spec in run_channels(keys)}
         self.pose_channel = foxglove.channels.FrameTransformChannel(pose_topic(keys), context=self.context)
-        self._subscribers = [session.declare_subscriber(keys.key(name), self._forward(name)) for name in self.channels]
-        self.server = foxglove.start_server(name=f"ddvs {keys.base}", host=host, port=port, context=self.context)
+        self._subscribers = [session.declare_subscriber(keys.key(name), self._forward(name))
+                             for name in self.channels if name != RESIDUAL]
+        self._residual_topic = self.channels[RESIDUAL].topic()
+        self._residual_watchers = 0
+        self._residual_subscriber: Any = None
+        self._lock = threading.Lock()
+        self.server = foxglove.start_server(name=f"ddvs {keys.base}", host=host, port=port, context=self.context,
+                                            server_listener=self)
         self.port = self.server.port
 
     def _channel(self, spec: ChannelSpec) -> foxglove.Channel:
@@ -85,9 +96,30 @@ class FoxgloveBridge:
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("ground truth not shown: %s", exc)
 
+    # --- foxglove.websocket.ServerListener: the residual key is subscribed only while a client watches ---------------
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        if channel.topic != self._residual_topic:
+            return
+        with self._lock:
+            self._residual_watchers += 1
+            if self._residual_subscriber is None:
+                self._residual_subscriber = self._session.declare_subscriber(self._keys.key(RESIDUAL),
+                                                                             self._forward(RESIDUAL))
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        if channel.topic != self._residual_topic:
+            return
+        with self._lock:
+            self._residual_watchers = max(self._residual_watchers - 1, 0)
+            if self._residual_watchers == 0 and self._residual_subscriber is not None:
+                self._residual_subscriber.undeclare()
+                self._residual_subscriber = None
+
     def close(self) -> None:
         self.server.stop()
-        for subscriber in self._subscribers:
+        with self._lock:
+            residual, self._residual_subscriber = self._residual_subscriber, None
+        for subscriber in [*self._subscribers, *([residual] if residual is not None else [])]:
             subscriber.undeclare()
         self._subscribers.clear()
 

@@ -29,8 +29,11 @@ from ddvs_service.protocol import (
     Time,
     TwistStamped,
     declare_publisher,
+    decode_image,
     decode_twist_stamped,
     dump,
+    encode_image,
+    image_from_array,
 )
 from ddvs_service.protocol.msgdefs import message_definition
 
@@ -42,16 +45,21 @@ SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 only that name."""
 
 
-def _publish(port: int, stop: threading.Event) -> None:
-    """Every key of a run at 20 Hz (ground truth a turn about z, 0.3 rad), until `stop`."""
+def _publish(port: int, stop: threading.Event, watched: threading.Event, residual_early: list[bool]) -> None:
+    """Every key of a run at 20 Hz (ground truth a turn about z, 0.3 rad), until `stop`; the residual, as the service
+    does, only while its key has a subscriber (`residual_early` records one before `watched` was set)."""
     from ddvs_service.lie import pose, so3_exp
     from ddvs_service.protocol import open_session
 
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         names = (*run_payloads(0), "servo_reference", "servo_state", "servo_config")
         pubs = {name: declare_publisher(session, KEYS, name) for name in names}
+        residual = declare_publisher(session, KEYS, "servo_residual")
         seq = 0
         while not stop.is_set():
+            if residual.matching_status.matching:
+                residual_early.append(not watched.is_set())
+                residual.put(encode_image(image_from_array(np.full((4, 5), -3.5, np.float32), "32FC1")))
             payloads = run_payloads(seq)
             payloads["servo_reference"] = payloads["camera_image"]
             payloads["servo_state"] = dump(StateSnapshot(robot=KEYS.robot, state="SERVOING", has_reference=True))
@@ -98,8 +106,8 @@ async def _watch(url: str, seconds: float) -> tuple[dict, dict[int, dict], dict[
 
 def test_a_websocket_client_receives_every_channel_with_its_schema():
     zenoh_port, ws_port = free_port(), free_port()
-    stop = threading.Event()
-    publisher = threading.Thread(target=_publish, args=(zenoh_port, stop), daemon=True)
+    stop, watched, residual_early = threading.Event(), threading.Event(), []
+    publisher = threading.Thread(target=_publish, args=(zenoh_port, stop, watched, residual_early), daemon=True)
     publisher.start()
     cmd = [sys.executable, "-m", "ddvs.cli", "monitor", "--foxglove", "--port", str(ws_port), "--robot", KEYS.robot,
            "--connect", f"tcp/127.0.0.1:{zenoh_port}"]
@@ -107,6 +115,8 @@ def test_a_websocket_client_receives_every_channel_with_its_schema():
     try:
         line = proc.stdout.readline()
         assert f"ws://127.0.0.1:{ws_port}" in line, line + proc.stdout.read()
+        time.sleep(1.0)  # the bridge is up and subscribed to everything but the residual
+        watched.set()
         info, channels, received = asyncio.run(_watch(f"ws://127.0.0.1:{ws_port}", 4.0))
     finally:
         proc.terminate()
@@ -127,6 +137,9 @@ def test_a_websocket_client_receives_every_channel_with_its_schema():
     pose = by_topic[pose_topic(KEYS)]
     assert (pose["encoding"], pose["schemaName"]) == ("protobuf", "foxglove.FrameTransform")
     assert received.get(pose["id"]), "no camera pose received"
+    assert residual_early and not any(residual_early)  # the residual key was subscribed only once a client watched
+    residual = decode_image(received[by_topic[topic_name(KEYS, "servo_residual")]["id"]][0])
+    assert residual.encoding == "32FC1" and np.all(residual.array == -3.5)
     twists = [decode_twist_stamped(p) for p in received[by_topic[topic_name(KEYS, "servo_twist")]["id"]]]
     assert all(t.angular[2] == t.header.stamp.nanosec for t in twists)  # the payloads as published
     state = json.loads(received[by_topic[topic_name(KEYS, "servo_state")]["id"]][-1])
@@ -140,6 +153,7 @@ def test_the_shipped_layout_is_the_builders_and_names_run_channels():
     assert shipped == layout_json(Keys())
     text = json.dumps(json.loads(shipped), ensure_ascii=False)
     topics = {spec.topic for spec in run_channels(Keys())}
-    for key_name in ("camera_image", "camera_info", "servo_reference", "servo_status", "servo_twist", "servo_state"):
+    for key_name in ("camera_image", "camera_info", "servo_reference", "servo_residual", "servo_status", "servo_twist",
+                     "servo_state"):
         assert topic_name(Keys(), key_name) in text and topic_name(Keys(), key_name) in topics, key_name
     assert pose_topic(Keys()) in text

@@ -43,7 +43,8 @@ def test_residuals_only_while_watched_and_at_the_reduced_rate():
     received: list[bytes] = []
     arrived = threading.Event()
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as service:
-        publisher = ResidualPublisher(service.declare_publisher(KEY), rate_hz=10.0)
+        zenoh_publisher = service.declare_publisher(KEY)
+        publisher = ResidualPublisher(zenoh_publisher, rate_hz=10.0)
         assert _offer_for(publisher, 0.5, computed) == 0 and not computed  # nobody watching: nothing computed
         with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as viewer:
             def on_sample(sample) -> None:
@@ -60,6 +61,7 @@ def test_residuals_only_while_watched_and_at_the_reduced_rate():
             before = len(computed)
             assert _offer_for(publisher, 0.3, computed) == 0 and len(computed) == before
         publisher.close()
+        zenoh_publisher.undeclare()
     image = decode_image(received[0])
     assert image.encoding == "32FC1" and image.header.stamp.to_ns() == 7
     expected = np.full((3, 4), 2.5, np.float32)

@@ -29,6 +29,7 @@ from ddvs_service.protocol import (
     Keys,
     Reply,
     SessionConfig,
+    decode_image,
     decode_twist_stamped,
     dump,
     encode_image,
@@ -370,3 +371,28 @@ def test_inbox_keeps_the_newest_frame_queues_commands_and_wakes_the_loop() -> No
     frame = inbox.take_frame()
     assert time.monotonic() - t0 < 5.0 and frame is not None and frame.sample == "frame 3"
     assert inbox.frames_superseded == 1  # frame 3 was taken, not superseded
+
+
+def test_the_residual_image_is_published_while_subscribed(served: tuple[Service, Operator, ServiceConfig]) -> None:
+    """`servo/residual` (issue 19): with a subscriber, 32FC1 images of the ROI at most 5 Hz, small once the frame is
+    tracked (that nothing is computed without one: tests/test_residual_publisher.py)."""
+    _, op, _ = served
+    img = scene()
+    assert op.command(op="set_reference", source="next_frame").ok
+    op.send(img)
+    residuals: list[np.ndarray] = []
+    op.send(shifted(img, 2.0, 1.0))  # no subscriber yet
+    subscriber = op.session.declare_subscriber(
+        op.keys.key("servo_residual"), lambda s: residuals.append(decode_image(s.payload.to_bytes()).array.copy()))
+    time.sleep(0.5)  # the service's matching listener learns of the subscriber
+    t0 = time.monotonic()
+    for _ in range(30):
+        op.send(shifted(img, 2.0, 1.0))
+    elapsed = time.monotonic() - t0
+    time.sleep(0.3)
+    subscriber.undeclare()
+    assert residuals, "no residual image while subscribed"
+    assert len(residuals) <= 5.0 * elapsed + 1.5  # the reduced rate, not one per frame
+    r = residuals[-1]
+    assert r.dtype == np.float32 and r.shape == (80, 100)  # the configured 100×80 template
+    assert np.sqrt(np.mean(r**2)) < 10.0  # tracked: what remains is resampling and noise

@@ -43,6 +43,15 @@ class Publisher:
         else:
             self._publisher.put(payload, attachment=self._identity.next_attachment())
 
+    @property
+    def matching_status(self) -> zenoh.MatchingStatus:
+        """Whether some subscriber matches the key now."""
+        return self._publisher.matching_status
+
+    def declare_matching_listener(self, handler: Callable[[zenoh.MatchingStatus], None]) -> zenoh.MatchingListener:
+        """Call `handler` whenever subscribers start or stop matching the key."""
+        return self._publisher.declare_matching_listener(handler)
+
     def undeclare(self) -> None:
         self._publisher.undeclare()
 

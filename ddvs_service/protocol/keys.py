@@ -70,6 +70,11 @@ TOPICS: dict[str, TopicSpec] = {
         "serve (when a reference is set)", "monitor, record", "DATA", "BLOCK", False, "latest only",
         "ddvs/reference", LATEST_QOS,
     ),
+    "servo_residual": TopicSpec(
+        "servo/residual", "sensor_msgs/msg/Image (CDR), 32FC1: the registration's residual over the ROI",
+        "sensor_msgs/msg/Image", "serve (only while subscribed, ≤ 5 Hz)", "monitor --foxglove, record", "DATA_LOW",
+        "DROP", False, "latest only", "ddvs/residual", LATEST_QOS,
+    ),
     "servo_command": TopicSpec(
         "servo/command", "query: JSON `Command` → reply: JSON `Reply`", None,
         "serve (queryable)", "ctl, experiment (get)", "INTERACTIVE_HIGH", "BLOCK", False, "query/reply",

@@ -4,13 +4,14 @@ Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everythi
 
 | role | publishes | subscribes | other |
 |---|---|---|---|
-| service | twist, status, config, state, reference | camera image + info | serves `servo/command`, holds token |
+| service | twist, status, config, state, reference (‡) | camera image + info | serves `servo/command`, holds token |
 | plant | camera image + info, joint states, ground truth | joint velocities (†), servo twist (free flyer) | |
 | bridge | joint velocities (†) | servo twist, joint states | watches `servo/alive` token |
 | operator | | every topic, the router's audit | queries `servo/command`, watches `servo/alive` |
 | observer | | every topic (frames only if allowed), the router's audit | watches `servo/alive` |
 
-(†) and the ROS 2 mode's `arm/velocity_commands` (`std_msgs/Float64MultiArray`).
+(†) and the ROS 2 mode's `arm/velocity_commands` (`std_msgs/Float64MultiArray`). (‡) and the residual image
+(`servo/residual`), withheld from observers with the frames.
 
 The rules are generated from `Keys`/`TOPICS` (`access_control`) so that they follow the key table; each role is
 mapped to a Zenoh identity (`Identity`: TLS certificate common names and/or usernames of user/password
@@ -38,7 +39,7 @@ from ddvs_service.protocol.keys import TOPICS, Keys
 from ddvs_service.protocol.session import SessionConfig
 
 ROLES = ("service", "plant", "bridge", "operator", "observer")
-FRAME_TOPICS = ("camera_image", "servo_reference")
+FRAME_TOPICS = ("camera_image", "servo_reference", "servo_residual")
 AUDIT_READERS = ("operator", "observer")  # may read the router's audit summary (`audit.audit_key`)
 SECURE_PROTOCOLS = ("tls", "quic")
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
@@ -61,7 +62,7 @@ _SAMPLE_TOPICS = tuple(n for n in TOPICS if n not in ("servo_command", "liveline
 
 ROLE_GRANTS: dict[str, Grants] = {
     "service": Grants(
-        publish=("servo_twist", "servo_status", "servo_config", "servo_state", "servo_reference"),
+        publish=("servo_twist", "servo_status", "servo_config", "servo_state", "servo_reference", "servo_residual"),
         subscribe=("camera_image", "camera_info"),
         serve=("servo_command",),
         tokens=("liveliness",),

@@ -58,6 +58,7 @@ from ddvs_service.service.config import IntrinsicsConfig, ServiceConfig, deep_me
 from ddvs_service.service.inbox import Arrival, Inbox
 from ddvs_service.service.persistence import BackgroundWriter, StateStore
 from ddvs_service.service.pipeline import ServoPipeline, StepResult
+from ddvs_service.service.residual_publisher import ResidualPublisher
 from ddvs_service.service.ros_commands import declare_command_services
 from ddvs_service.service.state import ServoState, TransitionError
 
@@ -180,6 +181,7 @@ class ServoNode:
             declare_command_services(ends, inbox.on_query)
         self._pub = {name: ends.publisher(name)
                      for name in ("servo_twist", "servo_status", "servo_state", "servo_config", "servo_reference")}
+        self._residual = ResidualPublisher(ends.publisher("servo_residual"))
         token = session.liveliness().declare_token(k.key("liveliness"))
         log.info("serving", extra=fields(robot=self.config.robot, prefix=self.config.prefix,
                                           state=self.pipeline.machine.state.value))
@@ -196,6 +198,7 @@ class ServoNode:
             self._publish_twist(ZERO6, Time.now())
             self._publish_state("stopped: service shutting down")
             token.undeclare()
+            self._residual.close()
             inputs[-1].undeclare()
             ends.close()
             log.info("service stopped", extra=fields(**self._counters().model_dump(),
@@ -262,6 +265,7 @@ class ServoNode:
             "total": (t_done - arrival.t) * 1e3,
         }
         self._publish_status(step, msg.header.stamp.to_ns(), latency, stale)
+        self._residual.offer(msg.header, lambda: self.pipeline.residual(image))
 
     def _reject_frame(self, message: str) -> None:
         self.counters["rejected"] += 1

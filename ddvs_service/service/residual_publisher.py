@@ -24,7 +24,8 @@ DEFAULT_RATE_HZ = 5.0
 
 
 class ResidualPublisher:
-    """Publishes residual images on `publisher` (a Zenoh publisher of the residual key) at most `rate_hz`."""
+    """Publishes residual images on `publisher` (of the `servo_residual` row: a Zenoh publisher or an
+    `endpoints.Publisher`; it stays the caller's to undeclare) at most `rate_hz`."""
 
     def __init__(self, publisher: Any, rate_hz: float = DEFAULT_RATE_HZ) -> None:
         if not rate_hz > 0:
@@ -64,5 +65,5 @@ class ResidualPublisher:
         return True
 
     def close(self) -> None:
+        """Stop following the matching status (the publisher is the caller's)."""
         self._listener.undeclare()
-        self._publisher.undeclare()
