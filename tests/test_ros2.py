@@ -128,10 +128,11 @@ DT = 0.1  # s: the camera moves by twist × DT between frames
 T_REF = pose(so3_exp([np.pi, 0.0, 0.0]), [0.0, 0.0, 0.5])  # 0.5 m above the plane z = 0, looking down
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def ros_side() -> Iterator[int]:
     """zenoh-ros2-sdk's shared session, listening on a loopback port for ddvs to connect to; message definitions
-    from the ROS wheels' share/ directory (the SDK would otherwise fetch them from the network)."""
+    from the ROS wheels' share/ directory (the SDK would otherwise fetch them from the network). One per module: the
+    SDK's message registry outlives its session and would not register the types again in a second one."""
     from zenoh_ros2_sdk import ZenohSession, get_registry
 
     get_registry(str(Path(sys.prefix) / "share"))
