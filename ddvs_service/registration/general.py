@@ -85,6 +85,7 @@ class _State:
     inlier_ratio: float = 0.0
     cost: float = float("inf")
     information: F64 | None = None  # on ρ*, from the first finest-level evaluation of a tracked frame
+    scale_cap: float = float("inf")  # the largest σ the weights and the inlier count use (`registration.integrity`)
 
 
 def _normalise(state: _State) -> None:
@@ -190,6 +191,7 @@ class GeneralRegistration:
     def track(
         self, current: F32, G0: F64, e0: F64, rho: F64, gains0: ArrayLike | float = 1.0, beta0: float = 0.0,
         scale0: float | None = None, first_level: int | None = None, tolerance_px: float | None = None,
+        scale_cap: float | None = None,
     ) -> GeneralResult:
         """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
         when ρ* is 0 (planar). The result carries the information on ρ* (`_rho_information`) of the first
@@ -199,12 +201,14 @@ class GeneralRegistration:
         `first_level`: the coarsest pyramid level solved (0 = full resolution only; default the coarsest), as
         `PlanarRegistration.run`: a warm start with small predicted motion skips the coarse levels.
         `tolerance_px`: convergence tolerance at full resolution (`config.base.step_tolerance_px` by default; the
-        tracker passes `tracking_step_tolerance_px`)."""
+        tracker passes `tracking_step_tolerance_px`). `scale_cap`: the largest robust scale used, as
+        `PlanarRegistration.run`."""
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         pyramid = self._load_current(current, len(levels))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
         state = _State(np.asarray(G0, dtype=np.float64).copy(), np.asarray(e0, dtype=np.float64).copy(),
-                       np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0)
+                       np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0,
+                       scale_cap=float("inf") if scale_cap is None else float(scale_cap))
         _normalise(state)
         free_e = bool(np.any(state.c != 0.0))
         information = free_e and self._observed(state)
@@ -231,7 +235,7 @@ class GeneralRegistration:
         p[k.PARAMS_DOMAIN : k.PARAMS_DOMAIN + 4] = UNRESTRICTED if domain is None else domain
         p[k.PARAMS_SPAN : k.PARAMS_SPAN + 4] = level.span
         p[k.PARAMS_BETA] = state.beta
-        p[k.PARAMS_SIGMA] = 1e30 if state.scale is None else state.scale
+        p[k.PARAMS_SIGMA] = 1e30 if state.scale is None else min(state.scale, state.scale_cap)
         p[k.PARAMS_ROBUST] = 0 if state.scale is None else ROBUST_CODES[self.config.base.robust]
         p[k.PARAMS_BANDS] = self.config.base.bands_for(level.n_pixels)
         p[k.PARAMS_GAINS : k.PARAMS_GAINS + state.gains.size] = state.gains.reshape(-1)

@@ -14,6 +14,9 @@
   estimate again on every frame).
   The information on ρ* (given `e`) of each converged frame is added to `rho_information`; it grows only while
   the camera translates.
+- Integrity (`registration.integrity`, as the planar `Tracker`): the robust scale of the warm-started frames is
+  capped at a multiple of the last good frames' and a converged fit whose own scale or whose corners jumped
+  implausibly counts as not converged.
 - A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags);
   `lost_after` consecutive failures declare LOST (flag `lost`), and the next frame re-acquires `G` and `e` globally.
 `track` never raises and never returns non-finite numbers.
@@ -30,6 +33,7 @@ from ddvs_service.registration.general_config import FLAG_DIVERGED, FLAG_LOST, G
 from ddvs_service.registration.general_result import GeneralResult
 from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.images import checked_grey
+from ddvs_service.registration.integrity import Integrity
 from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.registration.reference import Roi
 
@@ -61,6 +65,7 @@ class GeneralTracker:
         self._beta = 0.0
         self._scale: float | None = None
         self._failures = 0
+        self._integrity = Integrity(engine.roi)
 
     @classmethod
     def prepare(
@@ -113,7 +118,8 @@ class GeneralTracker:
         self._G_before = self._G
         self._last_G = result.G
         self._G, self._e, self._gains, self._beta = result.G, result.e, result.S, result.beta
-        self._scale = result.scale if np.isfinite(result.scale) else None
+        self._integrity.accept(result.scale)
+        self._scale = max(result.scale, self._integrity.config.min_anchor) if np.isfinite(result.scale) else None
         self._information = self._information + result.rho_information
         result.rho_information = self._information.copy()
         self._failures = 0
@@ -137,10 +143,15 @@ class GeneralTracker:
         photometric = (self._gains, self._beta, self._scale)
         base = problem.config.base
         tolerance = base.tracking_step_tolerance_px
+        cap = self._integrity.scale_cap
         result = problem.track(current, G0, e0, self._rho, *photometric, first_level=base.tracking_levels - 1,
-                               tolerance_px=tolerance)
+                               tolerance_px=tolerance, scale_cap=cap)
         if not result.converged and (G0 is not self._G or len(result.iterations) < len(problem.levels)):
-            result = problem.track(current, self._G, self._e, self._rho, *photometric, tolerance_px=tolerance)
+            result = problem.track(current, self._G, self._e, self._rho, *photometric, tolerance_px=tolerance,
+                                   scale_cap=cap)
+        implausible = self._integrity.judge(G0, result.G, result.scale) if result.converged else ""
+        if implausible:
+            result.converged, result.reason = False, implausible
         return result
 
     def _prediction(self) -> tuple[F64, F64]:

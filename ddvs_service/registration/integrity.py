@@ -17,7 +17,8 @@ fits whatever the frame shows and stays near 1. Two measures keep the estimate h
 - plausibility of a converged frame (`judge`): its own scale at most `scale_jump × anchor`, and the ROI corners
   within `max(corner_jump_fraction × ROI size, min_corner_jump_px)` pixels of where the frame started
   (the constant-velocity prediction or the last good estimate): consecutive frames at 30 Hz move a few pixels and
-  the prediction absorbs most of it, a jump of a tenth of the template is a different optimum.
+  the prediction absorbs most of it (a dropped frame or an irregular stream adds a period or more of motion): a
+  jump of a quarter of the template is a different optimum.
 
 Before the anchor is defined only the corner test applies. The anchor survives a re-acquisition (the reference, and
 so the scale of a good fit, is the same).
@@ -45,7 +46,7 @@ class IntegrityConfig:
     min_anchor: float = 1.5
     scale_cap: float = 2.0
     scale_jump: float = 2.5
-    corner_jump_fraction: float = 0.1
+    corner_jump_fraction: float = 0.25
     min_corner_jump_px: float = 8.0
 
     def __post_init__(self) -> None:
