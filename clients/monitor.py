@@ -5,7 +5,7 @@ Shown: the servo state (from `servo/status`, or `servo/state` before any status)
 norm (eq. 16, or 13 for DVS), the twist (m/s, rad/s, camera frame), arrival rates over the last `--window` seconds
 of camera frames, twists and status messages (Hz), the service's per-frame latency breakdown (ms) and counters, and
 the secured router's audit of this robot (`<prefix>/<robot>/router/audit`, docs/security.md): messages denied per
-identity, sessions without a role, refused TLS handshakes.
+identity, sessions without a role, refused TLS and user/password handshakes.
 """
 
 from __future__ import annotations
@@ -116,7 +116,7 @@ def _audit_line(audit: dict[str, Any] | None) -> str:
         return ", ".join(f"{who} {n}" for who, n in sorted(values.items())) or "none"
 
     return (f"denied {counts(audit.get('denied', {}))}   without a role {counts(audit.get('no_role', {}))}   "
-            f"TLS refused {audit.get('tls_refused', 0)}")
+            f"TLS refused {audit.get('tls_refused', 0)}   password refused {audit.get('auth_refused', 0)}")
 
 
 def render(snap: dict[str, Any], title: str) -> str:

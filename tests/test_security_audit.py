@@ -99,7 +99,7 @@ def test_intrusions_are_logged_counted_and_shown_while_legitimate_traffic_is_not
             assert [r.ok.payload.to_bytes() for r in operator.get(KEYS.servo_command, timeout=2.0) if r.ok] == [b"ok"]
             assert [r.ok for r in bridge.liveliness().get(KEYS.liveliness, timeout=2.0) if r.ok]
             quiet = newest_report(reports, lambda r: False, timeout=2.0)
-            assert quiet["denied"] == {} and quiet["no_role"] == {} and quiet["tls_refused"] == 0, quiet
+            assert quiet == {**quiet, "denied": {}, "no_role": {}, "tls_refused": 0, "auth_refused": 0}
             assert audit_lines(log) == []
 
             # intrusions: the observer sends joint velocities, a certificate with no role connects and sends, the
@@ -164,3 +164,46 @@ def test_audit_lines_are_rate_bounded_but_every_denial_is_counted(
     summarised += sum(e["suppressed"] for e in individual)
     assert len(individual) <= 10 + 5 * elapsed + 1  # burst of 2 × rate, then 5 lines per second
     assert len(individual) + summarised == 300  # nothing lost: each denial is either a line or in a summary count
+
+
+def test_security_init_password_variant_admits_each_role_and_refuses_wrong_passwords(
+    secured: tuple[Path, str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The user/password files `ddvs security init` writes work as they are: each role connects with its generated
+    password and its rights, a wrong password is refused and logged; a role that may not read the audit gets none."""
+    out, endpoint = secured
+    monkeypatch.chdir(out.parent)
+    log = tmp_path / "router.log"
+    with log.open("w") as stderr:
+        proc = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "router", "--zenoh-config",
+                                 str(out / "router-password.json5"), "--listen", endpoint],
+                                stdout=subprocess.PIPE, stderr=stderr, text=True, cwd=out.parent)
+    sessions = []
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().startswith("router "), log.read_text()
+        plant, bridge, observer = (zenoh.open(zenoh.Config.from_file(str(out / f"{role}-password.json5")))
+                                   for role in ("plant", "bridge", "observer"))
+        sessions += [plant, bridge, observer]
+        commands = Inbox(plant, KEYS.arm_joint_velocity)
+        time.sleep(0.3)
+        assert _put_until(bridge, KEYS.arm_joint_velocity, b"qd", commands)
+        observer.put(KEYS.arm_joint_velocity, b"forged")
+        wrong = json.loads(zenoh.Config.from_file(str(out / "bridge-password.json5")).get_json("transport"))
+        wrong["auth"]["usrpwd"]["password"] = "not-the-password"
+        config = zenoh.Config.from_file(str(out / "bridge-password.json5"))
+        config.insert_json5("transport", json.dumps(wrong))
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            zenoh.open(config)
+        reports = Inbox(plant, audit_key(KEYS.base))  # the plant may not read the audit: it gets nothing
+        time.sleep(1.5)
+        assert b"forged" not in commands.payloads and reports.payloads == []
+        lines = audit_lines(log)
+        denied = [e for e in lines if e["msg"] == "access denied"]
+        assert sorted((e["identity"], e["key"]) for e in denied) == [("observer", KEYS.arm_joint_velocity),
+                                                                      ("plant", audit_key(KEYS.base))]
+        assert [e["detail"] for e in lines if e["msg"] == "authentication refused"] == ["Invalid password"]
+    finally:
+        for session in sessions:
+            session.close()
+        proc.terminate()
+        proc.wait(timeout=30)

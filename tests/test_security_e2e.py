@@ -159,7 +159,7 @@ def test_arm_servo_converges_secured_by_security_init_while_an_observer_interfer
         time.sleep(1.5)  # the router's next audit summary
         audit = json.loads(audits.payloads[-1])
         assert audit["denied"] == {"observer": attempts}, audit  # and nothing from the legitimate nodes
-        assert audit["no_role"] == {} and audit["tls_refused"] == 0
+        assert audit["no_role"] == {} and audit["tls_refused"] == audit["auth_refused"] == 0
         router_log = [json.loads(line) for line in (logs / "router.log").read_text().splitlines()
                       if line.startswith("{")]
         denied = {(e["action"], e["key"]) for e in router_log if e.get("msg") == "access denied"}

@@ -1,14 +1,16 @@
-"""Audit of a router's access control: every denied message, session without a role and refused TLS handshake,
-read from Zenoh's own log, logged as JSON lines at a bounded rate and counted per identity (docs/security.md).
+"""Audit of a router's access control: every denied message, session without a role and refused handshake, read
+from Zenoh's own log, logged as JSON lines at a bounded rate and counted per identity (docs/security.md).
 
 Zenoh reports its access-control decisions only through its Rust `tracing` log (nothing in the Python API): at
 TRACE on `zenoh::net::routing::interceptor::access_control` it writes `<zid> on <subject> is unauthorized to <action>
 (<flow>) on <key>` for a decision it computes and `Using cached result: <zid> is unauthorized to ...` for one it
-reuses, and at INFO `<zid> did not match any configured ACL subject` for a session whose identity has no role;
+reuses, and at INFO `<zid> did not match any configured ACL subject` for a session whose identity has no role.
 `zenoh_link_tls` writes a WARN line `<why>. Hint: ...` (1.10; `Can not accept TLS connection: <why>` at DEBUG before)
 when a TLS handshake fails, e.g. `invalid peer certificate: certificate does not allow extended key usage for client
-authentication`. `ZenohLogTap` sends that log (which Zenoh writes
-to file descriptor 1) through a pipe to `Audit.feed`, and keeps Python's `sys.stdout` on the original output.
+authentication`; `zenoh_transport::unicast::establishment::accept` writes at DEBUG `UsrPwd extension - Recv OpenSyn.
+Invalid password.` (or `Invalid user.`) when user/password authentication fails. `ZenohLogTap` sends that log
+(which Zenoh writes to file descriptor 1) through a pipe to `Audit.feed`, and keeps Python's `sys.stdout` on the
+original output.
 
 What is counted as a denial: a message a client *sent* that the router refused (ingress flow). Egress refusals are
 the router withholding another node's data or declarations from a client (routine: e.g. it does not tell the plant
@@ -19,8 +21,9 @@ for its messages: it is reported as a session without a role instead.
 
 Log lines (logger `ddvs.audit`): `access denied` (fields `identity`, `zid`, `action`, `key`, `count` = that identity's
 denials so far, and `suppressed` = denials not logged individually since the last line), `session without a role`
-(`identity`, `zid`), `TLS handshake refused` (`detail`). At most `rate` lines per second on average (bursts of
-`burst`); every denial is counted whether logged or not. `Audit.report(base)` is the JSON summary `ddvs router`
+(`identity`, `zid`), `TLS handshake refused` (`detail`), `authentication refused` (`detail`: `Invalid password` or
+`Invalid user`). At most `rate` lines per second on average (bursts of `burst`); every denial is counted whether
+logged or not. `Audit.report(base)` is the JSON summary `ddvs router`
 publishes on `<base>/router/audit` (`audit_key`) and `ddvs monitor` shows.
 """
 
@@ -39,7 +42,8 @@ from typing import Any
 
 ACL_TARGET = "zenoh::net::routing::interceptor::access_control"
 TLS_TARGET = "zenoh_link_tls"
-LOG_DIRECTIVES = f"{ACL_TARGET}=trace,{TLS_TARGET}=debug"
+AUTH_TARGET = "zenoh_transport::unicast::establishment::accept"
+LOG_DIRECTIVES = f"{ACL_TARGET}=trace,{TLS_TARGET}=debug,{AUTH_TARGET}=debug"
 AUDIT_SUFFIX = "router/audit"
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
@@ -48,6 +52,7 @@ _DECISION = re.compile(r"^(\w+) on (\S+) is (unauthorized|authorized) to (.+) \(
 _CACHED = re.compile(r"^Using cached result: (\w+) is (unauthorized|authorized) to (.+) \((ingress|egress)\) on (\S+)$")
 _CACHING = re.compile(r"^ACL \((ingress|egress)\): caching permissions for `(\S+)` \.\.\.$")
 _NO_ROLE = re.compile(r"^(\w+) did not match any configured ACL subject")
+_AUTH_REFUSED = re.compile(r"^UsrPwd extension - Recv OpenSyn\. (Invalid \w+)\.")
 _TLS_REFUSED = re.compile(r"^(?:Can not accept TLS connection: )?(.*?)(?:\. Hint: .*)?$")
 _SUBJECT_NAME = re.compile(r"(?:CertCommonName|Username)\(([^)]*)\)")
 _LEVELS = {"TRACE": logging.DEBUG, "DEBUG": logging.DEBUG, "INFO": logging.INFO, "WARN": logging.WARNING,
@@ -102,7 +107,7 @@ class Audit:
         self.denials: Counter[Denial] = Counter()
         self.by_identity: Counter[str] = Counter()
         self.no_role: Counter[str] = Counter()
-        self.tls_refused = 0
+        self.refused: Counter[str] = Counter()  # handshakes: `tls_refused`, `auth_refused` (user/password)
         self.suppressed = 0
         self._pending_no_role: dict[str, float] = {}
 
@@ -117,7 +122,10 @@ class Audit:
         if target.startswith(ACL_TARGET):
             self._on_acl(thread, message)
         elif target.startswith(TLS_TARGET) and (level == "WARN" or message.startswith("Can not accept")):
-            self._on_tls_refused(_TLS_REFUSED.match(message).group(1))  # type: ignore[union-attr] # matches all
+            detail = _TLS_REFUSED.match(message).group(1)  # type: ignore[union-attr] # the pattern matches any text
+            self._on_refused("tls_refused", "TLS handshake refused", detail)
+        elif target.startswith(AUTH_TARGET) and (refused := _AUTH_REFUSED.match(message)):
+            self._on_refused("auth_refused", "authentication refused", refused.group(1))
         elif level in ("WARN", "ERROR"):
             logging.getLogger("zenoh." + target.replace("::", ".")).log(_LEVELS[level], message)
 
@@ -179,12 +187,12 @@ class Audit:
         log.warning("access denied", extra={"fields": {"identity": identity, "zid": zid, "action": action,
                                                        "key": key, "count": count, "suppressed": suppressed}})
 
-    def _on_tls_refused(self, detail: str) -> None:
+    def _on_refused(self, kind: str, what: str, detail: str) -> None:
         with self._lock:
-            self.tls_refused += 1
-            logged = self._take_token()
+            self.refused[kind] += 1
+            count, logged = self.refused[kind], self._take_token()
         if logged:
-            log.warning("TLS handshake refused", extra={"fields": {"detail": detail, "count": self.tls_refused}})
+            log.warning(what, extra={"fields": {"detail": detail, "count": count}})
 
     def flush(self, resolve_within_s: float = 2.0) -> None:
         """Log and count the sessions without a role whose identity is now known (or still unknown after
@@ -212,13 +220,15 @@ class Audit:
 
     def report(self, base: str | None = None) -> dict[str, Any]:
         """JSON-ready counts: `denied` per identity (only denials on keys of robot `base`, e.g. `ddvs/robot0`, when
-        given), `no_role` sessions per identity, `tls_refused` handshakes (those two are router-wide)."""
+        given), `no_role` sessions per identity, `tls_refused` and `auth_refused` (user/password) handshakes (those
+        three are router-wide)."""
         with self._lock:
             denied: Counter[str] = Counter()
             for denial, n in self.denials.items():
                 if base is None or _key_matches(denial.key, base):
                     denied[denial.identity] += n
-            return {"denied": dict(denied), "no_role": dict(self.no_role), "tls_refused": self.tls_refused}
+            return {"denied": dict(denied), "no_role": dict(self.no_role), "tls_refused": self.refused["tls_refused"],
+                    "auth_refused": self.refused["auth_refused"]}
 
 
 class ZenohLogTap:
