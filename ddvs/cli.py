@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "plot": ("clients.plot", "plot a bag or recording: velocities, error norm, 3-D camera trajectory, pose error"),
     "router": ("ddvs_service.router_cli", "a Zenoh router in Python (one per host; the host's nodes are its clients)"),
     "security": ("ddvs_service.security_cli", "secure a robot's Zenoh network: `ddvs security init --robot NAME OUT/`"),
+    "ros": ("clients.ros_graph", "the ROS 2 graph over rmw_zenoh, as `ros2 node/topic/service list` show it"),
     "demo": ("orchestration.demo", "the paper's real-data experiment on the simulated UR5, real time, with a report"),
 }
 

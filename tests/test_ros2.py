@@ -354,7 +354,9 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
     raw: list[bytes] = []
     peer_session = joints.session_mgr.session
     raw_sub = peer_session.declare_subscriber(commands.keyexpr, lambda s: raw.append(s.payload.to_bytes()))
-    with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+    bridge_port = free_port()  # `ddvs ros` below meets both peers (on a ROS machine: through rmw_zenohd)
+    bridge_zenoh = SessionConfig(connect=[f"tcp/127.0.0.1:{port}"], listen=[f"tcp/127.0.0.1:{bridge_port}"])
+    with open_session(bridge_zenoh) as session:
         node = BridgeNode(bridge, session, Keys("ddvs", "arm0", RosSettings(domain_id=DOMAIN)), rate=50.0)
         stop = threading.Event()
         thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
@@ -365,6 +367,17 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
             assert ("/joint_states", "sensor_msgs::msg::dds_::JointState_", "joint_state_broadcaster") in publishers
             assert ("/forward_velocity_controller/commands", "std_msgs::msg::dds_::Float64MultiArray_",
                     "ddvs_bridge") in publishers
+            env = {k: v for k, v in os.environ.items() if not k.startswith(("DDVS_", "ZENOH_"))}
+            graph = subprocess.run([sys.executable, "-m", "ddvs.cli", "ros", "--ros-domain-id", str(DOMAIN), "-v",
+                                    "--connect", f"tcp/127.0.0.1:{port},tcp/127.0.0.1:{bridge_port}"],
+                                   capture_output=True, text=True,
+                                   timeout=120, env=env, check=True).stdout.splitlines()
+            for line in ("  /ddvs_bridge", "  /joint_state_broadcaster",
+                         "  /joint_states [sensor_msgs/msg/JointState] publishers 1, subscriptions 1",
+                         "  /forward_velocity_controller/commands [std_msgs/msg/Float64MultiArray] publishers 1, "
+                         "subscriptions 1",
+                         "    MS /ddvs_bridge qos ::,1:,:,:,, " + TYPE_HASHES["sensor_msgs/msg/JointState"]):
+                assert line in graph, graph
             q = [0.0, -1.2, 1.4, -1.8, -1.57, 0.3]
             for seq in range(1, 40):
                 now = time.time_ns()

@@ -46,6 +46,14 @@ def dds_type_name(ros_type: str) -> str:
     return f"{parts[0]}::{parts[1]}::dds_::{parts[2]}_"
 
 
+def ros_type_name(dds_type: str) -> str:
+    """`sensor_msgs::msg::dds_::Image_` → `sensor_msgs/msg/Image` (the inverse of `dds_type_name`)."""
+    parts = dds_type.split("::")
+    if len(parts) != 4 or parts[1] not in ("msg", "srv") or parts[2] != "dds_" or not parts[3].endswith("_"):
+        raise ValueError(f"DDS type name {dds_type!r}: expected '<package>::msg|srv::dds_::<Type>_'")
+    return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+
+
 def rmw_zenoh_key(domain_id: int, topic: str, ros_type: str) -> str:
     """The Zenoh key expression rmw_zenoh uses for ROS topic (or service) `topic` of `ros_type` in `domain_id`."""
     if not 0 <= domain_id <= 232:
