@@ -13,16 +13,24 @@ from collections import defaultdict
 from ddvs_service.protocol.ros_graph import GraphEntity
 
 
+def _ros_type(dds_type: str) -> str:
+    """The ROS type name of a token's DDS type name; the name as it is when it is not a ROS one."""
+    from ddvs_service.protocol.rmw import ros_type_name
+
+    try:
+        return ros_type_name(dds_type)
+    except ValueError:
+        return dds_type
+
+
 def listing(entities: list[GraphEntity], verbose: bool = False) -> list[str]:
     """The graph as text lines: nodes, then topics (type, publisher and subscription counts), then services; with
     `verbose` every endpoint under its topic or service (node, kind, QoS)."""
-    from ddvs_service.protocol.rmw import ros_type_name
-
     nodes = sorted({f"{e.node.namespace.rstrip('/')}/{e.node.name}" for e in entities})
     endpoints: dict[tuple[str, str], list[GraphEntity]] = defaultdict(list)
     for e in entities:
         if e.kind != "NN" and e.topic is not None and e.dds_type is not None:
-            endpoints[(e.topic, ros_type_name(e.dds_type))].append(e)
+            endpoints[(e.topic, _ros_type(e.dds_type))].append(e)
     lines = ["nodes:", *(f"  {n}" for n in nodes)]
     for title, kinds in (("topics:", ("MP", "MS")), ("services:", ("SS", "SC"))):
         lines.append(title)
