@@ -330,9 +330,11 @@ def test_serve_in_ros2_mode_servoes_a_camera_driven_by_a_ros_peer(ros_side: int,
     assert code == 0
 
 
-def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_side: int) -> None:
+def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_side: int,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
     """The bridge reads rclpy's JointState on /joint_states and a TwistStamped on the twist topic, and publishes
-    Float64MultiArray velocities in its configured joint order on /forward_velocity_controller/commands."""
+    Float64MultiArray velocities in its configured joint order on /forward_velocity_controller/commands. It logs
+    the ROS publishers of its inputs, and warns about one of another type hash (whose samples cannot arrive)."""
     from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber
     from zenoh_ros2_sdk.attachment import Attachment
 
@@ -347,6 +349,9 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
                            type_hash=TYPE_HASHES["sensor_msgs/msg/JointState"], **common)
     twist = ROS2Publisher("/servo_node/delta_twist_cmds", "geometry_msgs/msg/TwistStamped", node_name="servo",
                           type_hash=TYPE_HASHES["geometry_msgs/msg/TwistStamped"], **common)
+    other_hash = ROS2Publisher("/joint_states", "sensor_msgs/msg/JointState", node_name="other_distro",
+                               type_hash="RIHS01_" + "0" * 64, **common)
+    caplog.set_level("INFO", logger="ddvs.endpoints")
     received: list[object] = []
     commands = ROS2Subscriber("/forward_velocity_controller/commands", "std_msgs/msg/Float64MultiArray",
                               callback=received.append, node_name="forward_velocity_controller",
@@ -373,7 +378,7 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
                                    capture_output=True, text=True,
                                    timeout=120, env=env, check=True).stdout.splitlines()
             for line in ("  /ddvs_bridge", "  /joint_state_broadcaster",
-                         "  /joint_states [sensor_msgs/msg/JointState] publishers 1, subscriptions 1",
+                         "  /joint_states [sensor_msgs/msg/JointState] publishers 2, subscriptions 1",  # 2 hashes
                          "  /forward_velocity_controller/commands [std_msgs/msg/Float64MultiArray] publishers 1, "
                          "subscriptions 1",
                          "    MS /ddvs_bridge qos ::,1:,:,:,, " + TYPE_HASHES["sensor_msgs/msg/JointState"]):
@@ -397,8 +402,12 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
             thread.join(5)
             node.close()
     raw_sub.undeclare()
-    for endpoint in (joints, twist, commands):
+    for endpoint in (joints, twist, commands, other_hash):
         endpoint.close()
+    seen = {(r.levelname, r.__dict__["fields"]["topic"], r.__dict__["fields"]["node"])
+            for r in caplog.records if r.name == "ddvs.endpoints"}
+    assert {("INFO", "/joint_states", "/joint_state_broadcaster"), ("INFO", "/servo_node/delta_twist_cmds", "/servo"),
+            ("WARNING", "/joint_states", "/other_distro")} <= seen, seen
     decoded = [deserialize_message(p, RosFloat64MultiArray) for p in raw]
     moving = [np.array(m.data) for m in decoded if np.any(np.array(m.data))]
     assert moving and all(v.size == len(names) for v in moving), [m.data for m in decoded[:3]]

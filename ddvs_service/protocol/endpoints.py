@@ -7,6 +7,10 @@ also declares the node's graph token and one token per ROS-typed endpoint (`ros_
 with rmw_zenoh's attachment (sequence number, source time, the entity gid), without which rmw_zenoh subscriptions
 drop it. JSON rows stay on their plain keys and outside the ROS graph in both modes.
 
+In ROS 2 mode it also watches the graph (a liveliness subscription, as rmw_zenoh's graph cache): each ROS publisher
+on a topic this node subscribes to is logged when it appears, and one with another type or type hash — a sample of
+which can never arrive, the key holds the type hash — is a WARNING naming both types (logger `ddvs.endpoints`).
+
 ROS services (`trigger_service`) are `std_srvs/srv/Trigger` queryables in rmw_zenoh's service layout: declared
 complete on the service key, the request's attachment read back (sequence number and client gid) and echoed in the
 reply's attachment with a new source time, a `SS` graph token.
@@ -15,6 +19,7 @@ reply's attachment with a new source time, a `SS` graph token.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 
@@ -24,7 +29,7 @@ from ddvs_service.protocol.errors import ProtocolError
 from ddvs_service.protocol.keys import TOPICS, Keys
 from ddvs_service.protocol.rmw import TYPE_HASHES, RmwAttachment, RmwPublisherIdentity, dds_type_name, rmw_zenoh_key
 from ddvs_service.protocol.ros import decode_trigger_request, encode_trigger_response
-from ddvs_service.protocol.ros_graph import SERVICE_QOS, EntityKind, GraphEntity, GraphNode
+from ddvs_service.protocol.ros_graph import ADMIN_SPACE, SERVICE_QOS, EntityKind, GraphEntity, GraphNode, parse_token
 from ddvs_service.protocol.session import LatestSubscriber, declare_publisher
 
 log = logging.getLogger("ddvs.endpoints")
@@ -65,12 +70,18 @@ class Endpoints:
         self._undeclare: list[Callable[[], None]] = []  # in declaration order; undone in reverse
         self.node: GraphNode | None = None
         self.entities: list[GraphEntity] = []
+        self._lock = threading.Lock()
+        self._inputs: dict[str, tuple[str, str]] = {}  # subscribed ROS topic → (DDS type, type hash)
+        self._publishers: dict[str, GraphEntity] = {}  # token → publisher seen in the graph
         if keys.rmw:
             ros = keys.ros
             assert ros.domain_id is not None
             self.node = GraphNode(ros.domain_id, ros.namespace, ros.node_name or node_name)
             self._zid = str(session.info.zid())
             self._declare_token(GraphEntity(self._zid, 0, 0, "NN", self.node))
+            graph = session.liveliness().declare_subscriber(f"{ADMIN_SPACE}/{ros.domain_id}/**", self._on_graph,
+                                                            history=True)
+            self._undeclare.append(graph.undeclare)
 
     @property
     def node_fqn(self) -> str:
@@ -95,7 +106,46 @@ class Endpoints:
     def _row_endpoint(self, kind: EntityKind, name: str) -> GraphEntity:
         spec = TOPICS[name]
         assert spec.ros_type is not None and spec.ros_qos is not None
-        return self._endpoint(kind, self.keys.ros_topic(name), spec.ros_type, spec.ros_qos.encode())
+        entity = self._endpoint(kind, self.keys.ros_topic(name), spec.ros_type, spec.ros_qos.encode())
+        if kind == "MS":
+            assert entity.topic is not None and entity.dds_type is not None and entity.type_hash is not None
+            with self._lock:
+                self._inputs[entity.topic] = (entity.dds_type, entity.type_hash)
+                present = [p for p in self._publishers.values() if p.topic == entity.topic]
+            for publisher in present:
+                self._report(publisher, (entity.dds_type, entity.type_hash))
+        return entity
+
+    def _on_graph(self, sample: zenoh.Sample) -> None:
+        """Zenoh thread: remember ROS publishers, report those on this node's input topics (logging only)."""
+        token = str(sample.key_expr)
+        if sample.kind != zenoh.SampleKind.PUT:
+            with self._lock:
+                self._publishers.pop(token, None)
+            return
+        try:
+            entity = parse_token(token)
+        except ValueError:
+            return
+        if entity.kind != "MP" or entity.zid == self._zid:
+            return
+        with self._lock:
+            self._publishers[token] = entity
+            expected = self._inputs.get(entity.topic or "")
+        if expected is not None:
+            self._report(entity, expected)
+
+    @staticmethod
+    def _report(publisher: GraphEntity, expected: tuple[str, str]) -> None:
+        node = f"{publisher.node.namespace.rstrip('/')}/{publisher.node.name}"
+        found = (publisher.dds_type or "", publisher.type_hash or "")
+        info = {"topic": publisher.topic, "node": node, "type": found[0], "type_hash": found[1]}
+        if found == expected:
+            log.info("ROS publisher on an input topic", extra={"fields": info})
+        else:
+            log.warning("ROS publisher on an input topic with another type: none of its samples can arrive (rmw_zenoh "
+                        "keys hold the type hash); expected %s %s", *expected,
+                        extra={"fields": {**info, "expected_type": expected[0], "expected_type_hash": expected[1]}})
 
     def publisher(self, name: str) -> Publisher:
         """A publisher of row `name` of `TOPICS` (with its QoS; a graph token and attachments in ROS 2 mode)."""
