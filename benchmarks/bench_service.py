@@ -19,8 +19,12 @@ core contested); `--realtime-priority P` runs the service under SCHED_FIFO (publ
 Never stale: the service withholds a twist that would go out after two newer frames arrived (status counter
 `stale`); such frames have no twist and count as not answered.
 
+Watchers (`--watchers none record foxglove`, issue 19): while measuring, `ddvs record` (a bag of every channel,
+raw frames) or `ddvs monitor --foxglove` with a WebSocket client subscribed to every channel (the residual image
+included, which the service then computes at 5 Hz) runs beside the service; one run each, in that order per rate.
+
     .venv/bin/python benchmarks/bench_service.py [--rates 30 100 200] [--seconds 10] [--hogs 0 2]
-                                                 [--realtime-priority 10] [--markdown]
+                                                 [--realtime-priority 10] [--watchers none record] [--markdown]
 """
 
 from __future__ import annotations
@@ -139,6 +143,45 @@ def command(session, keys: Keys, **kwargs: object) -> Reply:
     raise RuntimeError("the service did not answer")
 
 
+def watch_foxglove(url: str, stop: threading.Event) -> None:
+    """A Foxglove WebSocket client that subscribes every advertised channel and reads until `stop`."""
+    import asyncio
+
+    import websockets
+
+    async def client() -> None:
+        async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None) as ws:
+            while not stop.is_set():
+                try:
+                    frame = await asyncio.wait_for(ws.recv(), timeout=0.2)
+                except TimeoutError:
+                    continue
+                except websockets.ConnectionClosed:
+                    return  # the monitor stopped first
+                if isinstance(frame, str) and json.loads(frame).get("op") == "advertise":
+                    ids = [c["id"] for c in json.loads(frame)["channels"]]
+                    await ws.send(json.dumps({"op": "subscribe",
+                                              "subscriptions": [{"id": i, "channelId": i} for i in ids]}))
+
+    asyncio.run(client())
+
+
+def start_watcher(watcher: str, port: int, workdir: str) -> tuple[subprocess.Popen, threading.Event]:
+    """`ddvs record` or `ddvs monitor --foxglove` + a subscribed client, connected to the service at `port`."""
+    stop = threading.Event()
+    common = ["--robot", "bench", "--connect", f"tcp/127.0.0.1:{port}"]
+    if watcher == "record":
+        proc = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "record", str(Path(workdir) / "bag"), *common],
+                                cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return proc, stop
+    ws_port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "monitor", "--foxglove", "--port", str(ws_port),
+                             *common], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert proc.stdout is not None and "ws://" in proc.stdout.readline()
+    threading.Thread(target=watch_foxglove, args=(f"ws://127.0.0.1:{ws_port}", stop), daemon=True).start()
+    return proc, stop
+
+
 def summarise(rate: float, hogs: int, run: dict, statuses: list[dict], arrival_ms: dict[int, float],
               counters: list[dict]) -> dict:
     """Figures of one rate from the answered frames' statuses (in stamp order), their twists' latencies and the
@@ -167,7 +210,7 @@ def summarise(rate: float, hogs: int, run: dict, statuses: list[dict], arrival_m
     }
 
 
-def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | None) -> dict:
+def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | None, watcher: str = "none") -> dict:
     port = free_port()
     state = tempfile.mkdtemp(prefix="ddvs-bench-")
     config = {
@@ -211,6 +254,8 @@ def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | Non
                      image={"format": "png", "data": encode_upload(img)})
         assert ok.ok, ok.error
         assert command(session, keys, op="start").ok
+        watching = start_watcher(watcher, port, state) if watcher != "none" else None
+        time.sleep(1.0 if watching else 0.0)  # the watcher's subscriptions reach the service
         spinners = [subprocess.Popen([sys.executable, __file__, "--hog"]) for _ in range(hogs)]
         try:
             out = subprocess.run([sys.executable, __file__, "--publish", str(port), "--rate", str(rate),
@@ -219,6 +264,10 @@ def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | Non
             for spinner in spinners:
                 spinner.kill()
                 spinner.wait()
+            if watching:
+                watching[1].set()
+                watching[0].terminate()
+                watching[0].wait(30)
         run = json.loads(out.stdout.strip().splitlines()[-1])
         time.sleep(0.5)
         with lock:  # twists answering a measured frame (the watchdog's zero twists carry no frame's stamp)
@@ -227,7 +276,8 @@ def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | Non
         run_statuses.sort(key=lambda s: s["frame_stamp_ns"])
         measured = sorted((s for s in statuses if s["frame_stamp_ns"] >= run["start_ns"]),
                           key=lambda s: s["frame_stamp_ns"])  # stale ones included
-        return summarise(rate, hogs, run, run_statuses, arrival_ms, [s["counters"] for s in measured])
+        return {"watcher": watcher,
+                **summarise(rate, hogs, run, run_statuses, arrival_ms, [s["counters"] for s in measured])}
     finally:
         for s in subs:
             s.undeclare()
@@ -246,6 +296,8 @@ def main() -> None:
     parser.add_argument("--hog", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--realtime-priority", type=int, metavar="1-99",
                         help="run the service under SCHED_FIFO (ddvs serve --realtime-priority)")
+    parser.add_argument("--watchers", nargs="+", default=["none"], choices=("none", "record", "foxglove"),
+                        help="what watches the servo while measuring (one run each; default none)")
     parser.add_argument("--markdown", action="store_true", help="print a markdown table")
     args = parser.parse_args()
     if args.publish:
@@ -255,15 +307,18 @@ def main() -> None:
         hog()
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load average {os.getloadavg()[0]:.2f}", flush=True)
-    rows = [measure(rate, args.seconds, hogs, args.realtime_priority) for hogs in args.hogs for rate in args.rates]
+    rows = [measure(rate, args.seconds, hogs, args.realtime_priority, watcher)
+            for hogs in args.hogs for rate in args.rates for watcher in args.watchers]
     if args.markdown:
-        print("| input rate | hogs | frames published / answered / dropped / stale | twists within a period | "
-              "end to end median / p99 / max | service median / p99 | registration median / p99 | transport median "
-              "/ p99 | p99 frames: service share | median 1st / 2nd half | load |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        print("| input rate | watcher | hogs | frames published / answered / dropped / stale | "
+              "twists within a period | end to end median / p99 / max | service median / p99 | "
+              "registration median / p99 | transport median / p99 | p99 frames: service share | "
+              "median 1st / 2nd half | load |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for r in rows:
             e, sv, rg, tr = r["end_to_end_ms"], r["service_ms"], r["registration_ms"], r["transport_ms"]
-            print(f"| {r['rate_hz']:.0f} Hz | {r['hogs']} | {r['published']} / {r['twists']} / {r['dropped']} / "
+            print(f"| {r['rate_hz']:.0f} Hz | {r['watcher']} | {r['hogs']} | {r['published']} / {r['twists']} / "
+                  f"{r['dropped']} / "
                   f"{r['stale']} | {r['within_period']:.1%} | "
                   f"{e['median']:.2f} / {e['p99']:.2f} / {e['max']:.1f} ms | {sv['median']:.2f} / {sv['p99']:.2f} ms | "
                   f"{rg['median']:.2f} / {rg['p99']:.2f} ms | {tr['median']:.2f} / {tr['p99']:.2f} ms | "
