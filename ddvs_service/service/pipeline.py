@@ -10,6 +10,7 @@ and rad/s) and is zero unless the state is SERVOING.
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,6 +74,7 @@ class ServoPipeline:
         self._estimator: PlanarEstimator | GeneralEstimator | None = None
         self._law: ControlLaw | None = None
         self.guard = ErrorGuard()
+        self._recent: deque[NDArray[np.float64]] = deque(maxlen=config.control.settle_frames)
         self._suspect = False  # the last frame's fit was suspect: re-acquire on the next one
         if intrinsics is not None:
             self._law = ControlLaw(config.control.law_config(), intrinsics)
@@ -95,6 +97,7 @@ class ServoPipeline:
         self.machine.stop_threshold = config.control.stop_threshold
         self.machine.resume_threshold = config.control.stop_threshold * config.control.resume_factor
         self.machine.converge_frames = config.control.converge_frames
+        self._recent = deque(self._recent, maxlen=config.control.settle_frames)
         if self.reference is not None and registration_changed:
             self._build_estimator(self.reference, config.registration.roi)
 
@@ -129,6 +132,7 @@ class ServoPipeline:
             estimator = PlanarEstimator(grey, roi, settings)
         self.reference, self.roi, self._estimator = grey, roi, estimator
         self.guard.reset()
+        self._recent.clear()
         self._suspect = False
         return estimator
 
@@ -171,7 +175,7 @@ class ServoPipeline:
             est.message = f"{est.message}; {suspect}".strip("; ")
         error = out.error if out is not None else ZERO6
         norm = out.error_norm if out is not None else float("nan")
-        state = self.machine.on_frame(FrameOutcome(out is not None, norm))
+        state = self.machine.on_frame(FrameOutcome(out is not None, self._settled_norm(out)))
         twist = out.twist if (out is not None and self.machine.moves) else ZERO6
         t2 = time.perf_counter()
         return StepResult(
@@ -188,6 +192,15 @@ class ServoPipeline:
         if self._estimator is None:
             return None
         return self._estimator.residual(to_grey(frame))
+
+    def _settled_norm(self, out: ControlOutput | None) -> float:
+        """Norm of the mean control error over the last `settle_frames` tracked frames (nan for an untracked
+        frame, which also empties the window): what the stop and resume decisions compare."""
+        if out is None:
+            self._recent.clear()
+            return float("nan")
+        self._recent.append(np.asarray(out.error, dtype=np.float64))
+        return float(np.linalg.norm(np.mean(self._recent, axis=0)))
 
     def _control(self, est: Estimate) -> ControlOutput | None:
         assert self._law is not None
