@@ -9,7 +9,7 @@ For every reference pixel `p*` of the region of interest (level pixels, `u` = co
   - gain block: `φ_k(p*) · Iw` with `φ_k` the bilinear (tent) basis of the R×C gain grid;
   - bias: 1;
 - robust weight `w(r / σ)` (0 none, 1 Huber k = 1.345, 2 Tukey c = 4.685), σ supplied by the caller;
-- sums: upper triangle of `Jᵀ W J` (built per row from 12 moments, see `row_sums`), `Jᵀ W r`, statistics (valid
+- sums: upper triangle of `Jᵀ W J` (built per row from 12 moments, see `accumulate_row`), `Jᵀ W r`, statistics (valid
   and inlier counts, Σ r²), and a histogram of `|r|` binned on its float32 bits (16 bins per octave, no logarithm)
   whose median gives the next MAD scale — over every other pixel of every other row, valid where the pixel's own
   reference and warped values are (a quarter of the ROI sets the scale as well, at a fraction of the cost).
@@ -105,6 +105,39 @@ def gain_at(span: ti.template(), gains: ti.template(), u: ti.f32, v: ti.f32, gri
     return gain, phi
 
 
+@ti.func
+def row_gains(span: ti.template(), gains: ti.template(), v: ti.f32, grid_rows: ti.template(),
+              grid_cols: ti.template()):
+    """The gain surface along reference row `v`, factored: the row tents `a_i = tent(t_r(v), i)` and the column gains
+    `h_j = Σ_i a_i s_ij`, so that `S(u, v) = Σ_j b_j(u) h_j` and `φ_ij(u, v) = a_i b_j(u)` (`column_tents`)."""
+    tr = grid_coordinate(v, span[1], span[3], grid_rows)
+    a = ti.Vector.zero(ti.f32, grid_rows)
+    h = ti.Vector.zero(ti.f32, grid_cols)
+    for i in ti.static(range(grid_rows)):
+        a[i] = tent(tr, i)
+        for j in ti.static(range(grid_cols)):
+            h[j] += a[i] * gains[i * grid_cols + j]
+    return a, h
+
+
+@ti.func
+def column_tents(span: ti.template(), h: ti.template(), u: ti.f32, grid_cols: ti.template()):
+    """`(S(u, v), b)`: the gain at column `u` of the row whose column gains are `h` (`row_gains`) and the column
+    tents `b_j = tent(t_c(u), j)`."""
+    tc = grid_coordinate(u, span[0], span[2], grid_cols)
+    b = ti.Vector.zero(ti.f32, grid_cols)
+    gain = 0.0
+    for j in ti.static(range(grid_cols)):
+        b[j] = tent(tc, j)
+        gain += b[j] * h[j]
+    return gain, b
+
+
+def _triangle_index(e: int, f: int, n: int) -> int:
+    """Index of entry `(e, f)`, `e ≤ f`, in the row-major upper triangle of an `n × n` matrix."""
+    return e * n - e * (e - 1) // 2 + f - e
+
+
 # In a row (`dv = v − cy` fixed) the geometric Jacobian is `J_geo = C(dv) · b`, `b = [gx, gy, gx du, gy du, gx du²]`
 # (`du = u − cx`; rows of `C`: the `J[0…7]` of the module docstring). `C` is sparse: row a lists (basis index q,
 # coefficient index into `row_coefficients`).
@@ -130,44 +163,65 @@ def _moment_index(p: int, q: int) -> int:
 
 
 @ti.func
-def row_sums(moments, cross, photo, gb, ge, stats, dv: ti.f32, s: ti.f32):
-    """One row's contribution to the accumulator (upper triangle of `JᵀWJ`, `JᵀWr`, statistics) from its sums.
+def triangle_index(e: ti.i32, f: ti.i32, n: ti.template()) -> ti.i32:
+    """`_triangle_index` at run time."""
+    return e * n - e * (e - 1) // 2 + f - e
 
-    `J_geo = C(dv) · b` (see `C_SPARSE`), so the row's geometric block `C (Σ w b bᵀ) Cᵀ` needs only the 12 moments
-    of `Σ w b bᵀ`; the photometric columns `E = [φ_k Iw, 1]` enter through `cross = Σ w E bᵀ` and
-    `photo = Σ w E Eᵀ` (upper triangle), and `JᵀWr` through `gb = Σ w r b`, `ge = Σ w r E`. Same sums as the
-    per-pixel outer product of the full Jacobian, with a third of the per-pixel multiply-adds.
-    """
-    M = ti.static(ge.n)
+
+@ti.func
+def accumulate_row(acc: ti.template(), moments, cross_c, photo_c, photo_cb, cross_b, w_sum: ti.f32, gb, ge_c,
+                   r_sum: ti.f32, stats, a, dv: ti.f32, s: ti.f32, grid_rows: ti.template(),
+                   grid_cols: ti.template()):
+    """Add one row's contribution to the accumulator `acc` (upper triangle of `JᵀWJ`, `JᵀWr`, statistics) from the
+    row's sums.
+
+    Geometric block: `J_geo = C(dv) · b` (see `C_SPARSE`), so `C (Σ w b bᵀ) Cᵀ` needs only the 12 moments of
+    `Σ w b bᵀ`, and `JᵀWr` the 5 sums `gb = Σ w r b` (a third of the per-pixel multiply-adds of the full outer
+    product). Photometric columns `E = [φ_00 Iw … φ_{R−1,C−1} Iw, 1]` with `φ_ij = a_i b_j` and `a` constant along the
+    row (`row_gains`): `Σ w E_ij b_q = a_i Σ w b_j Iw b_q` (`cross_c`), `Σ w E_ij E_kl = a_i a_k Σ w b_j b_l Iw²`
+    (`photo_c`, upper triangle over the columns), `Σ w E_ij = a_i Σ w b_j Iw` (`photo_cb`), `Σ w r E_ij =
+    a_i Σ w r b_j Iw` (`ge_c`); the bias column's `Σ w b_q` (`cross_b`), `Σ w`, `Σ w r`. The pixel loop thus carries
+    sums for one row of grid nodes, and the gain nodes are expanded here in a loop, not unrolled: the compiled
+    code does not grow with the grid (a 4×4 grid's unrolled expansion took minutes to compile)."""
+    C = ti.static(grid_cols)
+    M = ti.static(grid_rows * grid_cols + 1)
     P = ti.static(N_GEOMETRIC + M)
     NT = ti.static(P * (P + 1) // 2)
     si = 1.0 / s
     coef = ti.Vector([s, -dv, 1.0, 3.0 * dv, 3.0, dv, -dv * si, -si, -dv * dv * si])
-    out = ti.Vector.zero(ti.f32, NT + P + N_STATS)
-    for a in ti.static(range(N_GEOMETRIC)):
-        for c in ti.static(range(a, P)):
-            idx = ti.static(a * P - a * (a - 1) // 2 + c - a)
+    for g in ti.static(range(N_GEOMETRIC)):
+        for c in ti.static(range(g, N_GEOMETRIC)):
             total = 0.0
-            for p, i in ti.static(C_SPARSE[a]):
-                if ti.static(c < N_GEOMETRIC):
-                    for q, j in ti.static(C_SPARSE[c]):
-                        total += coef[i] * coef[j] * moments[ti.static(_moment_index(p, q))]
-                else:
-                    total += coef[i] * cross[c - N_GEOMETRIC, p]
-            out[idx] = total
+            for p, i in ti.static(C_SPARSE[g]):
+                for q, j in ti.static(C_SPARSE[c]):
+                    total += coef[i] * coef[j] * moments[ti.static(_moment_index(p, q))]
+            acc[ti.static(_triangle_index(g, c, P))] += total
+        bias_total = 0.0
         g_total = 0.0
-        for p, i in ti.static(C_SPARSE[a]):
+        for p, i in ti.static(C_SPARSE[g]):
+            bias_total += coef[i] * cross_b[p]
             g_total += coef[i] * gb[p]
-        out[NT + a] = g_total
-    for e in ti.static(range(M)):
-        for f in ti.static(range(e, M)):
-            a = ti.static(N_GEOMETRIC + e)
-            c = ti.static(N_GEOMETRIC + f)
-            out[ti.static(a * P - a * (a - 1) // 2 + c - a)] = photo[ti.static(e * M - e * (e - 1) // 2 + f - e)]
-        out[NT + N_GEOMETRIC + e] = ge[e]
+        acc[ti.static(_triangle_index(g, P - 1, P))] += bias_total
+        acc[NT + g] += g_total
+    for e in range(M - 1):  # the gain nodes, row-major (i, j)
+        ai = a[e // C]
+        j = e % C
+        node = N_GEOMETRIC + e
+        for g in ti.static(range(N_GEOMETRIC)):
+            total = 0.0
+            for p, i in ti.static(C_SPARSE[g]):
+                total += coef[i] * cross_c[j, p]
+            acc[triangle_index(g, node, P)] += ai * total
+        for f in range(e, M - 1):
+            l = f % C
+            jl = triangle_index(ti.min(j, l), ti.max(j, l), C)
+            acc[triangle_index(node, N_GEOMETRIC + f, P)] += ai * a[f // C] * photo_c[jl]
+        acc[triangle_index(node, P - 1, P)] += ai * photo_cb[j]
+        acc[NT + node] += ai * ge_c[j]
+    acc[ti.static(_triangle_index(P - 1, P - 1, P))] += w_sum
+    acc[NT + P - 1] += r_sum
     for k in ti.static(range(3)):
-        out[NT + P + k] = stats[k]
-    return out
+        acc[NT + P + k] += stats[k]
 
 
 @ti.func
@@ -209,7 +263,7 @@ def hist_value(k: ti.i32, frac: ti.f32) -> ti.f32:
 def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: ti.i32):
     """Write band `b`'s partial sums `acc` and its |r| histogram `hist` to their places in `work` (`work_size`)."""
     nacc = ti.static(acc.n)
-    for k in ti.static(range(nacc)):
+    for k in range(nacc):
         work[(1 + b) * nacc + k] = acc[k]
     for k in range(HIST_BINS):
         work[nacc * (1 + MAX_BANDS) + b * HIST_BINS + k] = hist[k]
@@ -262,15 +316,15 @@ def warp_row(cur: ti.template(), G: ti.template(), buf: ti.template(), slot: ti.
 
 
 @ti.func
-def pixel_terms(ref: ti.template(), buf: ti.template(), span: ti.template(), gains: ti.template(), v: ti.i32,
-                u: ti.i32, su: ti.i32, sc: ti.i32, sd: ti.i32, beta: ti.f32, grid_rows: ti.template(),
-                grid_cols: ti.template()):
+def pixel_terms(ref: ti.template(), buf: ti.template(), span: ti.template(), h: ti.template(), v: ti.i32,
+                u: ti.i32, su: ti.i32, sc: ti.i32, sd: ti.i32, beta: ti.f32, grid_cols: ti.template()):
     """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the rolling buffer of warped
-    rows (`buf[sc + u]` is the warped sample at `(u, v)`, `su`/`sd` the rows above/below).
+    rows (`buf[sc + u]` is the warped sample at `(u, v)`, `su`/`sd` the rows above/below), with the row's column
+    gains `h` (`row_gains`).
 
-    Returns `(ok, r, gx, gy, c0, φ)`: `ok` is false where a reference tap is masked or a warped tap is
-    `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads only, no
-    branches: the pixel loop that accumulates the normal equations stays vectorisable."""
+    Returns `(ok, r, gx, gy, c0, b)`, `b` the column tents: `ok` is false where a reference tap is masked or a
+    warped tap is `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads
+    only, no branches: the pixel loop that accumulates the normal equations stays vectorisable."""
     ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
     c0 = buf[sc + u]
     cl = buf[sc + u - 1]
@@ -278,11 +332,11 @@ def pixel_terms(ref: ti.template(), buf: ti.template(), span: ti.template(), gai
     cu = buf[su + u]
     cd = buf[sd + u]
     ok = ref_ok & (ti.min(ti.min(c0, cl), ti.min(cr, ti.min(cu, cd))) > MASK_LIMIT)
-    gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+    gain, b = column_tents(span, h, ti.cast(u, ti.f32), grid_cols)
     r = gain * c0 + beta - ir
     gx = 0.5 * (gain * 0.5 * (cr - cl) + gxr)
     gy = 0.5 * (gain * 0.5 * (cd - cu) + gyr)
-    return ok, ti.select(ok, r, 0.0), ti.select(ok, gx, 0.0), ti.select(ok, gy, 0.0), ti.select(ok, c0, 0.0), phi
+    return ok, ti.select(ok, r, 0.0), ti.select(ok, gx, 0.0), ti.select(ok, gy, 0.0), ti.select(ok, c0, 0.0), b
 
 
 @ti.kernel
@@ -301,7 +355,7 @@ def planar_step(
     leaves `cur`), so that the five warped samples of a pixel's ESM gradient are read, not re-interpolated.
     """
     M = ti.static(grid_rows * grid_cols + 1)
-    MT = ti.static(M * (M + 1) // 2)
+    C = ti.static(grid_cols)
     P = ti.static(N_GEOMETRIC + M)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
@@ -341,16 +395,20 @@ def planar_step(
                         su = ((v - first) % 3) * TILE_STRIDE - ut0 + 1
                         sc = ((v - first + 1) % 3) * TILE_STRIDE - ut0 + 1
                         sd = ((v - first + 2) % 3) * TILE_STRIDE - ut0 + 1
+                        a, h = row_gains(span, gains, ti.cast(v, ti.f32), grid_rows, grid_cols)
                         moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
-                        cross = ti.Matrix.zero(ti.f32, M, 5)  # Σ w E_e b_q
-                        photo = ti.Vector.zero(ti.f32, MT)  # upper triangle of Σ w E Eᵀ
+                        cross_c = ti.Matrix.zero(ti.f32, C, 5)  # Σ w b_j Iw b_q (photometric_row)
+                        photo_c = ti.Vector.zero(ti.f32, C * (C + 1) // 2)  # Σ w b_j b_l Iw², upper triangle
+                        photo_cb = ti.Vector.zero(ti.f32, C)  # Σ w b_j Iw
+                        cross_b = ti.Vector.zero(ti.f32, 5)  # Σ w b_q
+                        w_sum = 0.0
                         gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
-                        ge = ti.Vector.zero(ti.f32, M)  # Σ w r E
+                        ge_c = ti.Vector.zero(ti.f32, C)  # Σ w r b_j Iw
+                        r_sum = 0.0
                         stats = ti.Vector.zero(ti.f32, 3)
                         # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
                         for u in range(ut0, ut1 + 1):
-                            ok, r, gx, gy, c0, phi = pixel_terms(ref, buf, span, gains, v, u, su, sc, sd, beta,
-                                                                 grid_rows, grid_cols)
+                            ok, r, gx, gy, c0, bt = pixel_terms(ref, buf, span, h, v, u, su, sc, sd, beta, C)
                             valid = ti.select(ok, 1.0, 0.0)
                             w = valid * robust_weight(r, sigma, kind)
                             du = u - cx
@@ -362,22 +420,24 @@ def planar_step(
                             moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
                                                   wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
                             basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
-                            E = ti.Vector.zero(ti.f32, M)
-                            for k in ti.static(range(M - 1)):
-                                E[k] = phi[k] * c0
-                            E[M - 1] = 1.0
-                            for e in ti.static(range(M)):
-                                we = w * E[e]
+                            E = bt * c0  # the gain columns' photometric Jacobian entries, over the row's a_i
+                            for j in ti.static(range(C)):
+                                we = w * E[j]
                                 for q in ti.static(range(5)):
-                                    cross[e, q] += we * basis[q]
-                                for f in ti.static(range(e, M)):
-                                    photo[ti.static(e * M - e * (e - 1) // 2 + f - e)] += we * E[f]
+                                    cross_c[j, q] += we * basis[q]
+                                for l in ti.static(range(j, C)):
+                                    photo_c[ti.static(_triangle_index(j, l, C))] += we * E[l]
+                                photo_cb[j] += we
+                            cross_b += w * basis
+                            w_sum += w
                             w_r = w * r
                             gb += w_r * basis
-                            ge += w_r * E
+                            ge_c += w_r * E
+                            r_sum += w_r
                             inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
                             stats += ti.Vector([valid, inlier, valid * r * r])
-                        acc += row_sums(moments, cross, photo, gb, ge, stats, v - cy, s)
+                        accumulate_row(acc, moments, cross_c, photo_c, photo_cb, cross_b, w_sum, gb, ge_c, r_sum,
+                                       stats, a, v - cy, s, grid_rows, grid_cols)
                         # The |r| histogram stores (into a thread-local array), so it gets its own scalar loop,
                         # over every other pixel of every other row, from the residual alone (valid where the
                         # pixel's own reference and warped values are): it only has to give the median's scale.
@@ -386,8 +446,7 @@ def planar_step(
                                 u = ut0 + 2 * k
                                 ir = ref[v, u]
                                 c0 = buf[sc + u]
-                                gain, _phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows,
-                                                     grid_cols)
+                                gain, _b = column_tents(span, h, ti.cast(u, ti.f32), C)
                                 if ti.min(ir, c0) > MASK_LIMIT:
                                     hist[hist_bin(ti.abs(gain * c0 + beta - ir))] += 1.0
             store_band(work, acc, hist, b)
