@@ -22,6 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import zenoh
 
@@ -49,8 +50,9 @@ class Publisher:
             self._publisher.put(payload, attachment=self._identity.next_attachment())
 
     @property
-    def matching_status(self) -> zenoh.MatchingStatus:
-        """Whether some subscriber matches the key now."""
+    def matching_status(self) -> Any:
+        """Whether some subscriber matches the key now (`.matching`). A `zenoh.MatchingStatus` at run time; zenoh
+        1.10's type stub says `bool`."""
         return self._publisher.matching_status
 
     def declare_matching_listener(self, handler: Callable[[zenoh.MatchingStatus], None]) -> zenoh.MatchingListener:
