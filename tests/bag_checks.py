@@ -1,6 +1,7 @@
 """What a bag must satisfy to be read by other tools: every message of its rosbag2 storage file decodes with the
-`rosbags` rosbag2 reader (with the bag's own message definitions), every message of its JSON file parses as a JSON
-object, and each MCAP file's summary lists every channel with the number of messages a full read finds."""
+`rosbags` rosbag2 reader and with `mcap_ros2` (each with the bag's own message definitions), every message of its
+JSON file parses as a JSON object, and each MCAP file's summary lists every channel with the number of messages a
+full read finds."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import json
 from pathlib import Path
 
 from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 
 from clients.bag import iter_messages, storage_files
@@ -32,6 +34,10 @@ def check_bag(bag: Path) -> dict[str, int]:
         for connection, _, raw in reader.messages():
             reader.deserialize(raw, connection.msgtype)
             decoded[connection.topic] = decoded.get(connection.topic, 0) + 1
+    with open(storage_files(bag)[0], "rb") as f:  # the mcap library's own ros2msg decoder agrees on every message
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        mcap_decoded = sum(1 for *_, message in reader.iter_decoded_messages() if message is not None)
+    assert mcap_decoded == sum(decoded.values())
     for message in iter_messages(storage_files(bag)[1]):
         assert message.message_encoding == "json" and isinstance(json.loads(message.data), dict), message.topic
         decoded[message.topic] = decoded.get(message.topic, 0) + 1

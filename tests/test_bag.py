@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from bag_checks import check_bag
 from conftest import free_port
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
@@ -155,6 +156,7 @@ def test_recorded_run_is_read_by_rosbags_and_the_mcap_reader(tmp_path):
         _assert_in_order(by_topic[topic_of[name]], sent[name], name)
     statuses = [parse_message(Status, data) for data in by_topic[topic_of["servo_status"]]]
     assert [s.seq for s in statuses] == sorted(s.seq for s in statuses)
+    assert check_bag(out) == {topic: len(data) for topic, data in by_topic.items()}  # mcap_ros2 decodes them too
 
 
 def _assert_in_order(recorded: list[bytes], sent: list[bytes], name: str) -> None:
