@@ -214,6 +214,7 @@ def test_ddvs_serve_refuses_a_router_that_holds_a_role_certificate(certs: Path, 
         "intrinsics": {"fx": 420.0, "fy": 420.0, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
     }))
     real = router_as("router")
+    real_zid = real.info.zid()
     log_path = tmp_path / "serve.log"
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
     with log_path.open("w") as log_file:
@@ -244,6 +245,8 @@ def test_ddvs_serve_refuses_a_router_that_holds_a_role_certificate(certs: Path, 
         lines = [json.loads(line) for line in log_path.read_text().splitlines() if line.startswith("{")]
         lost = [e for e in lines if e["level"] == "ERROR" and "lost the connection to the router" in e["msg"]]
         assert lost and lost[0]["endpoints"] == [endpoint]
+        joined = [e["router"] for e in lines if e["msg"] == "connected to router"]
+        assert joined[0] == str(real_zid) and len(joined) == 2  # at start, then the real router's certificate again
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)

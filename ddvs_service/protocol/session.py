@@ -156,11 +156,11 @@ def open_session(cfg: SessionConfig) -> zenoh.Session:
 
 
 def watch_router(session: zenoh.Session, endpoints: list[str], logger: logging.Logger | None = None) -> None:
-    """Log (logger `ddvs.session`) each router connection of `session`: INFO when one opens, ERROR when one closes
-    (nothing flows until a router accepts this node again). Zenoh keeps reconnecting to `endpoints` by itself; over
-    TLS it accepts only a server whose certificate chains to the CA and names the endpoint's host, so a node that
-    took over the endpoint with another certificate stays refused and this node stays disconnected (docs/security.md).
-    """
+    """Log (logger `ddvs.session`) each router connection of `session`: INFO when one opens (at once for those
+    already open), ERROR when one closes (nothing flows until a router accepts this node again). Zenoh keeps
+    reconnecting to `endpoints` by itself; over TLS it accepts only a server whose certificate chains to the CA and
+    names the endpoint's host, so a node that took over the endpoint with another certificate stays refused and this
+    node stays disconnected (docs/security.md)."""
     log = logger or logging.getLogger("ddvs.session")
 
     def on_event(event: zenoh.TransportEvent) -> None:
@@ -175,7 +175,7 @@ def watch_router(session: zenoh.Session, endpoints: list[str], logger: logging.L
                       "endpoints accepts this node again (over TLS only one whose certificate names the endpoint's "
                       "host: the real router)", extra=extra)
 
-    session.info.declare_transport_events_listener(on_event)
+    session.info.declare_transport_events_listener(on_event, history=True)  # history: the router it opened with
 
 
 def declare_publisher(session: zenoh.Session, keys: Keys, name: str) -> zenoh.Publisher:
