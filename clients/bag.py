@@ -300,8 +300,9 @@ def _rewrite(path: Path, profile: str, compression: str) -> tuple[dict[str, int]
 
 
 def recover_bag(directory: str | Path, compression: str = "zstd") -> dict[str, int]:
-    """Make a killed recorder's bag whole: rewrite each storage file that has no footer from its complete chunks,
-    and write metadata.yaml. Returns the messages kept per topic (both files)."""
+    """Make a killed recorder's bag whole: rewrite each storage file from its readable records (a killed recorder's
+    complete chunks; a complete file comes out with the same messages) and write metadata.yaml. Returns the messages
+    kept per topic (both files)."""
     directory = Path(directory)
     ros_path, json_path = storage_files(directory)
     if not ros_path.exists():
