@@ -353,6 +353,7 @@ def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_
         assert _replies(mtls_client(net, certs, "operator"), b"x", timeout=0.3) == []  # the router itself still runs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("impostor", ROLES)
 def test_a_router_with_a_role_certificate_is_refused_by_every_client(certs: Path, impostor: str) -> None:
     """The rogue-router attack: the real router goes down and one holding a role's certificate (right CA) listens
