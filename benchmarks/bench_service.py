@@ -15,7 +15,8 @@ loop: the publisher's encode and put, Zenoh both ways, the hand-off to the servi
 wake-up.
 
 State load (`--hogs N`): N busy-loop processes at normal priority run while measuring (two on a 2-core host: every
-core contested); `--realtime-priority P` runs the service under SCHED_FIFO (publisher and receiver stay normal).
+core contested); `--realtime-priority P` runs the service under SCHED_FIFO, `--realtime-chain` the camera publisher
+and the receiver too (the hogs stay at normal priority).
 Never stale: the service withholds a twist that would go out after two newer frames arrived (status counter
 `stale`); such frames have no twist and count as not answered.
 
@@ -132,7 +133,8 @@ def publish(port: int, rate: float, seconds: float) -> None:
 
 
 def hog() -> None:
-    """A CPU hog: spins until killed."""
+    """A CPU hog at normal priority (SCHED_OTHER, also when started from a real-time chain): spins until killed."""
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     while True:
         pass
 
@@ -296,6 +298,8 @@ def main() -> None:
     parser.add_argument("--hog", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--realtime-priority", type=int, metavar="1-99",
                         help="run the service under SCHED_FIFO (ddvs serve --realtime-priority)")
+    parser.add_argument("--realtime-chain", action="store_true",
+                        help="with --realtime-priority: the camera publisher and the receiver under SCHED_FIFO too")
     parser.add_argument("--watchers", nargs="+", default=["none"], choices=("none", "record", "foxglove"),
                         help="what watches the servo while measuring (one run each; default none)")
     parser.add_argument("--markdown", action="store_true", help="print a markdown table")
@@ -305,6 +309,10 @@ def main() -> None:
         return
     if args.hog:
         hog()
+    if args.realtime_chain:  # this process (the receiver) and the publisher it starts; the hogs reset themselves
+        if not args.realtime_priority:
+            raise SystemExit("--realtime-chain needs --realtime-priority")
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load average {os.getloadavg()[0]:.2f}", flush=True)
     rows = [measure(rate, args.seconds, hogs, args.realtime_priority, watcher)
