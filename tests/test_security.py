@@ -12,6 +12,7 @@ import logging
 import os
 import re
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -475,6 +476,35 @@ def test_example_configurations_are_generated_and_load_in_zenoh(tmp_path: Path) 
             "`ddvs security init --robot robot0 --certs-dir certs --configs-only configs/security`")
         zenoh.Config.from_file(str(path))  # valid JSON5 with keys Zenoh knows
     assert render_json5({"mode": "client"}, "a\nb").startswith("// a\n// b\n{")
+
+
+def _init(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "ddvs.cli", "security", "init", *args], capture_output=True,
+                          text=True, cwd=cwd)
+
+
+def test_security_init_is_idempotent_and_refuses_bad_input_before_writing(tmp_path: Path) -> None:
+    first = _init("--robot", "ur5", "--roles", "service,operator", "secure", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    out = tmp_path / "secure"
+    written = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert {p.name for p in out.iterdir()} == {".gitignore", "ca", "router", "service", "operator",
+                                               "router-mtls.json5", "router-password.json5", "service-mtls.json5",
+                                               "service-password.json5", "operator-mtls.json5",
+                                               "operator-password.json5"}
+    service = json.loads(zenoh.Config.from_file(str(out / "service-mtls.json5")).get_json("transport"))
+    assert service["link"]["tls"]["connect_certificate"] == "secure/service/service.pem"  # relative, as given
+    assert (out / "service-password.json5").stat().st_mode & 0o077 == 0
+    assert (out / "router" / "passwords.txt").stat().st_mode & 0o077 == 0
+    again = _init("--robot", "ur5", "--roles", "service,operator", "secure", cwd=tmp_path)
+    assert again.returncode == 0 and "created" not in again.stdout
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == written  # keys, certificates, passwords kept
+    for args, error in ((["--robot", "ur5", "--roles", "admin"], "roles ['admin']: expected some of"),
+                        (["--robot", "ur*"], "wildcard"),
+                        (["--robot", "ur5", "--router", "localhost:7447"], "expected '<protocol>/<address>'")):
+        refused = _init(*args, "refused", cwd=tmp_path)
+        assert refused.returncode != 0 and error in refused.stderr, refused.stderr
+        assert not (tmp_path / "refused").exists()
 
 
 def test_shipped_examples_agree_on_the_robot() -> None:
