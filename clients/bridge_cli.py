@@ -26,13 +26,17 @@ def run(args: argparse.Namespace) -> int:
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
     from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.security import check_robot_covered
 
     setup_logging("INFO")
+    session_config = session_config_from_args(args)
+    if not check_robot_covered(Keys(args.prefix, args.robot), session_config.zenoh_config):
+        return 2  # logged: the router configuration beside ours would drop everything of this robot
     bridge = load_bridge(args.config)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with open_session(session_config_from_args(args)) as session:
+    with open_session(session_config) as session:
         node = BridgeNode(bridge, session, Keys(args.prefix, args.robot, ros_settings_from_args(args)), args.rate)
         try:
             node.run(stop)

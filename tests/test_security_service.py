@@ -41,6 +41,7 @@ from ddvs_service.protocol.security import (
     router_config,
 )
 
+REPO = Path(__file__).resolve().parents[1]
 W, H = 320, 240
 
 
@@ -252,17 +253,26 @@ def test_ddvs_serve_refuses_a_router_that_holds_a_role_certificate(certs: Path, 
         proc.wait(timeout=30)
 
 
-def test_ddvs_serve_refuses_a_robot_its_router_configuration_does_not_cover(tmp_path: Path) -> None:
-    """`ddvs security init --robot ur5` beside the service's Zenoh configuration, a service configured for robot0:
-    the service refuses to start and says why (instead of running with every message silently dropped)."""
+@pytest.mark.parametrize("node", ["serve", "bridge", "sim arm"])
+def test_nodes_refuse_a_robot_their_router_configuration_does_not_cover(tmp_path: Path, node: str) -> None:
+    """`ddvs security init --robot ur5` beside the node's Zenoh configuration, the node run for robot0: it refuses
+    to start (exit 2) and says why and how to fix it, instead of running with every message silently dropped."""
     subprocess.run([sys.executable, "-m", "ddvs.cli", "security", "init", "--robot", "ur5", "--configs-only",
                     str(tmp_path / "secure")], check=True, capture_output=True)
-    serve_file = tmp_path / "serve.json"
-    zenoh_section = {"mode": "client", "connect": ["tls/localhost:7447"],
-                     "zenoh_config": str(tmp_path / "secure" / "service-mtls.json5")}
-    serve_file.write_text(json.dumps({"robot": "robot0", "state_dir": str(tmp_path / "state"), "zenoh": zenoh_section}))
-    result = subprocess.run([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(serve_file)],
-                            capture_output=True, text=True, timeout=120)
+    role = {"serve": "service", "bridge": "bridge", "sim arm": "plant"}[node]
+    zenoh_file = str(tmp_path / "secure" / f"{role}-mtls.json5")
+    if node == "serve":
+        serve_file = tmp_path / "serve.json"
+        serve_file.write_text(json.dumps({"robot": "robot0", "state_dir": str(tmp_path / "state"), "zenoh": {
+            "mode": "client", "connect": ["tls/localhost:7447"], "zenoh_config": zenoh_file}}))
+        args = ["serve", "--config", str(serve_file)]
+    else:
+        config = "ur5_bridge.json" if node == "bridge" else "ur5_poster.json"
+        args = [*node.split(), "--config", str(REPO / "configs" / "arm" / config), "--robot", "robot0", "--mode",
+                "client", "--connect", "tls/localhost:7447", "--zenoh-config", zenoh_file]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    result = subprocess.run([sys.executable, "-m", "ddvs.cli", *args], capture_output=True, text=True, timeout=120,
+                            env=env)
     assert result.returncode == 2, result.stderr
     errors = [json.loads(line) for line in result.stderr.splitlines() if line.startswith("{")]
     assert any(e["level"] == "ERROR" and e.get("robot") == "ddvs/robot0" and "is not covered" in e["msg"]
