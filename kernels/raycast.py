@@ -2,9 +2,16 @@
 
 One kernel launch renders a frame: per pixel, the ray `K⁻¹ [u, v, 1]` (camera frame, 0-based pixel centres) is
 taken to the surface's local frame, intersected analytically (plane `z = 0` or saddle `z = (x² − y²)/a`, first hit in
-front of the camera), the texture is sampled bilinearly (mirrored repeat) at the hit's local `(x, y)`, then the
-illumination `S · I + β` and seeded Gaussian noise are applied. Float32 throughout. Geometry conventions and the
-float64 reference intersection: `sim/surfaces.py`. Parameters are packed in one float32 array (layout `P_*`).
+front of the camera), and the albedo at the hit's local `(x, y)` is read:
+- tiled scene (`P_TILED` = 1): the texture, sampled bilinearly, repeated mirrored over the whole surface;
+- finite target (`P_TILED` = 0): the texture inside the textured extent `[−w/2, w/2] × [−h/2, h/2]`, the `backdrop`
+  array outside it (mirrored repeat, one backdrop tile per extent; a 1×1 array is a uniform grey), blended by the
+  pixel's coverage of the extent: the pixel's footprint on the surface (the parallelogram of the ray differentials
+  projected on the tangent plane) cut by each edge, x and y coverages multiplied (a box filter: anti-aliased edges;
+  approximate only in the corner pixels).
+Where the ray misses the surface the albedo is `P_BACKGROUND`. Then the illumination `S · albedo + β` and seeded
+Gaussian noise are applied. Float32 throughout. Geometry conventions and the float64 reference intersection:
+`sim/surfaces.py`. Parameters are packed in one float32 array (layout `P_*`).
 """
 
 import numpy as np
@@ -23,7 +30,8 @@ P_BIAS = 27  # β (grey levels)
 P_NOISE = 28  # standard deviation of the additive Gaussian noise (grey levels)
 P_BACKGROUND = 29  # grey level where the ray misses
 P_QUANTIZE = 30  # 1: round and clip to [0, 255] like an 8-bit sensor
-P_SIZE = 31
+P_TILED = 31  # 1: the texture repeats mirrored over the whole surface; 0: finite target on the backdrop
+P_SIZE = 32
 
 
 @ti.func
@@ -50,6 +58,55 @@ def _mirror(u: ti.f32, n: ti.i32) -> ti.f32:
 
 
 @ti.func
+def _bilinear(texture: ti.template(), u: ti.f32, v: ti.f32) -> ti.f32:
+    """Texture value at texel coordinates `(u, v)` (pixel centres at integers), bilinear, mirrored repeat."""
+    th, tw = texture.shape[0], texture.shape[1]
+    u = _mirror(u, tw)
+    v = _mirror(v, th)
+    u0 = ti.min(ti.max(ti.cast(ti.floor(u), ti.i32), 0), tw - 1)
+    v0 = ti.min(ti.max(ti.cast(ti.floor(v), ti.i32), 0), th - 1)
+    u1 = ti.min(u0 + 1, tw - 1)
+    v1 = ti.min(v0 + 1, th - 1)
+    fu = ti.min(ti.max(u - u0, 0.0), 1.0)
+    fv = ti.min(ti.max(v - v0, 0.0), 1.0)
+    top = texture[v0, u0] + fu * (texture[v0, u1] - texture[v0, u0])
+    bottom = texture[v1, u0] + fu * (texture[v1, u1] - texture[v1, u0])
+    return top + fv * (bottom - top)
+
+
+@ti.func
+def _tangent_step(s: ti.f32, d: ti.math.vec3, step: ti.math.vec3, n: ti.math.vec3) -> ti.math.vec3:
+    """Displacement on the surface (local frame) of the hit `o + s d` when the ray direction changes by `step`:
+    `s (step − d (n·step)/(n·d))`, the ray differential on the tangent plane of normal `n`."""
+    nd = n.dot(d)
+    result = ti.math.vec3(0.0, 0.0, 0.0)
+    if nd != 0.0:
+        result = s * (step - d * (n.dot(step) / nd))
+    return result
+
+
+@ti.func
+def _coverage(half: ti.f32, x: ti.f32, a: ti.f32, b: ti.f32) -> ti.f32:
+    """Fraction of a pixel centred at `x` inside `[−half, half]`, the pixel's footprint being the parallelogram whose
+    sides span `a` and `b` (m) along x: the distribution of the sum of two uniform variables of widths `a` and `b`
+    (a trapezoid), integrated up to the edge; exact for a straight edge and a locally affine projection."""
+    p = ti.min(a, b)
+    q = ti.max(ti.max(a, b), 1e-12)
+    t = half - ti.abs(x) + 0.5 * (p + q)  # the edge's position in the footprint, from its outer end
+    cover = 0.0
+    if t >= p + q:
+        cover = 1.0
+    elif t > 0.0:
+        if t < p:
+            cover = t * t / (2.0 * p * q)
+        elif t <= q:
+            cover = (t - 0.5 * p) / q
+        else:
+            cover = 1.0 - (p + q - t) * (p + q - t) / (2.0 * p * q)
+    return cover
+
+
+@ti.func
 def _first_positive(s1: ti.f32, s2: ti.f32) -> ti.f32:
     s = ti.math.inf
     if s1 > 0.0:
@@ -63,6 +120,7 @@ def _first_positive(s1: ti.f32, s2: ti.f32) -> ti.f32:
 def _render(
     p: ti.types.ndarray(dtype=ti.f32, ndim=1),
     texture: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    backdrop: ti.types.ndarray(dtype=ti.f32, ndim=2),
     image: ti.types.ndarray(dtype=ti.f32, ndim=2),
     depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
     key: ti.u32,
@@ -78,9 +136,17 @@ def _render(
     a = p[P_A]
     g0, g1, g2, g3, g4, g5 = p[P_GAIN], p[P_GAIN + 1], p[P_GAIN + 2], p[P_GAIN + 3], p[P_GAIN + 4], p[P_GAIN + 5]
     bias, sigma, background, quantize = p[P_BIAS], p[P_NOISE], p[P_BACKGROUND], p[P_QUANTIZE] > 0.5
+    tiled = p[P_TILED] > 0.5
+    half_w, half_h = 0.5 * p[P_EXTENT], 0.5 * p[P_EXTENT + 1]
     th, tw = texture.shape[0], texture.shape[1]
     su = tw / p[P_EXTENT]  # texels per metre
     sv = th / p[P_EXTENT + 1]
+    bh, bw = backdrop.shape[0], backdrop.shape[1]
+    bu = bw / p[P_EXTENT]
+    bv = bh / p[P_EXTENT + 1]
+    # Ray direction steps (local frame) of one pixel along u and along v.
+    step_u = ti.math.vec3(r00 * k00, r10 * k00, r20 * k00)
+    step_v = ti.math.vec3(r00 * k01 + r01 * k11, r10 * k01 + r11 * k11, r20 * k01 + r21 * k11)
     width = image.shape[1]
     for i in range(image.shape[0] * width):  # flat loop: split evenly over the CPU threads
         row = i // width
@@ -108,20 +174,25 @@ def _render(
                         s = _first_positive(q / qa, qc / q)
             elif qb != 0.0:
                 s = _first_positive(-qc / qb, -1.0)
-        value = background
+        albedo = background
         if s < ti.math.inf:
-            u = _mirror((ox + s * dx) * su + 0.5 * tw - 0.5, tw)
-            v = _mirror((oy + s * dy) * sv + 0.5 * th - 0.5, th)
-            u0 = ti.min(ti.max(ti.cast(ti.floor(u), ti.i32), 0), tw - 1)
-            v0 = ti.min(ti.max(ti.cast(ti.floor(v), ti.i32), 0), th - 1)
-            u1 = ti.min(u0 + 1, tw - 1)
-            v1 = ti.min(v0 + 1, th - 1)
-            fu = ti.min(ti.max(u - u0, 0.0), 1.0)
-            fv = ti.min(ti.max(v - v0, 0.0), 1.0)
-            top = texture[v0, u0] + fu * (texture[v0, u1] - texture[v0, u0])
-            bottom = texture[v1, u0] + fu * (texture[v1, u1] - texture[v1, u0])
-            gain = g0 + g1 * xn + g2 * yn + g3 * xn * xn + g4 * xn * yn + g5 * yn * yn
-            value = gain * (top + fv * (bottom - top)) + bias
+            x = ox + s * dx
+            y = oy + s * dy
+            albedo = _bilinear(texture, x * su + 0.5 * tw - 0.5, y * sv + 0.5 * th - 0.5)
+            if not tiled:
+                n = ti.math.vec3(0.0, 0.0, 1.0)
+                if saddle:
+                    n = ti.math.vec3(2.0 * x / a, -2.0 * y / a, -1.0)
+                d = ti.math.vec3(dx, dy, dz)
+                du = _tangent_step(s, d, step_u, n)
+                dv = _tangent_step(s, d, step_v, n)
+                cover = _coverage(half_w, x, ti.abs(du[0]), ti.abs(dv[0])) * _coverage(
+                    half_h, y, ti.abs(du[1]), ti.abs(dv[1])
+                )
+                back = _bilinear(backdrop, x * bu + 0.5 * bw - 0.5, y * bv + 0.5 * bh - 0.5)
+                albedo = back + cover * (albedo - back)
+        gain = g0 + g1 * xn + g2 * yn + g3 * xn * xn + g4 * xn * yn + g5 * yn * yn
+        value = gain * albedo + bias
         if sigma > 0.0:
             h1 = _hash(key ^ _hash(ti.cast(i, ti.u32) * ti.u32(2)))
             h2 = _hash(h1 ^ ti.u32(0x9E3779B9))
@@ -137,17 +208,19 @@ def _render(
 def render(
     params: NDArray[np.float32],
     texture: NDArray[np.float32],
+    backdrop: NDArray[np.float32],
     image: NDArray[np.float32],
     depth: NDArray[np.float32],
     key: int,
 ) -> None:
     """Render into the preallocated C-contiguous float32 arrays `image` and `depth` (same (H, W) shape; depth is
-    camera-frame Z in metres, `inf` where the ray misses). `key` (uint32) seeds the noise of this frame."""
+    camera-frame Z in metres, `inf` where the ray misses). `backdrop` (2-D float32) is read only for a finite target
+    (`P_TILED` = 0). `key` (uint32) seeds the noise of this frame."""
     if params.shape != (P_SIZE,) or params.dtype != np.float32:
         raise ValueError(f"params must be float32 of shape ({P_SIZE},), got {params.dtype} {params.shape}")
-    for name, arr in (("texture", texture), ("image", image), ("depth", depth)):
+    for name, arr in (("texture", texture), ("backdrop", backdrop), ("image", image), ("depth", depth)):
         if arr.dtype != np.float32 or arr.ndim != 2 or not arr.flags.c_contiguous:
             raise ValueError(f"{name} must be a C-contiguous 2-D float32 array, got {arr.dtype} {arr.shape}")
     if image.shape != depth.shape:
         raise ValueError(f"image {image.shape} and depth {depth.shape} must have the same shape")
-    _render(params, texture, image, depth, np.uint32(key & 0xFFFFFFFF))
+    _render(params, texture, backdrop, image, depth, np.uint32(key & 0xFFFFFFFF))

@@ -25,14 +25,15 @@ F32 = NDArray[np.float32]
 class Appearance:
     """Photometry of the rendered frames: `gain` = the 6 coefficients of the gain field
     `S = g0 + g1 x + g2 y + g3 x² + g4 x y + g5 y²` over normalised image coordinates `(x, y) = K⁻¹p`, `bias` β
-    (grey levels), Gaussian noise of standard deviation `noise` (grey levels) seeded by `seed`, `background` grey
-    level where no surface is seen, and `quantize` (round and clip to [0, 255])."""
+    (grey levels), Gaussian noise of standard deviation `noise` (grey levels) seeded by `seed`, `background` albedo
+    (grey level under unit gain) of the uniform backdrop around a finite target and where no surface is seen, and
+    `quantize` (round and clip to [0, 255]). The illumination lights the backdrop as it lights the target."""
 
     gain: tuple[float, float, float, float, float, float] = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     bias: float = 0.0
     noise: float = 0.0
     seed: int = 0
-    background: float = 0.0
+    background: float = 128.0
     quantize: bool = False
 
     def __post_init__(self) -> None:
@@ -68,8 +69,13 @@ def render_view(
     T_world_cam: ArrayLike,
     appearance: Appearance = Appearance(),
     index: int = 0,
+    backdrop: ArrayLike | None = None,
 ) -> tuple[F32, F32]:
-    """Ray-cast `(image, depth)` of `surface` textured with `texture` (2-D grey array) seen from `T_world_cam`."""
+    """Ray-cast `(image, depth)` of `surface` textured with `texture` (2-D grey array) seen from `T_world_cam`.
+
+    Around a finite target (`surface.tiled` false) the surface shows `backdrop`, a second 2-D grey image repeated
+    mirrored with one copy per target extent (distractors), or the uniform `appearance.background` when `None`;
+    edges are anti-aliased (`kernels/raycast.py`)."""
     # Taichi is imported on first render only: exact-geometry runs (no images) never load it.
     from kernels import raycast
     from kernels.backend import init
@@ -89,12 +95,16 @@ def render_view(
     p[raycast.P_NOISE] = appearance.noise
     p[raycast.P_BACKGROUND] = appearance.background
     p[raycast.P_QUANTIZE] = float(appearance.quantize)
+    p[raycast.P_TILED] = float(surface.tiled)
     image = np.empty((intrinsics.height, intrinsics.width), dtype=np.float32)
     depth = np.empty_like(image)
     tex = np.ascontiguousarray(texture, dtype=np.float32)
-    if tex.ndim != 2:
-        raise ValueError(f"texture must be a 2-D grey image, got shape {tex.shape}")
-    raycast.render(p, tex, image, depth, frame_key(appearance.seed, index))
+    back = np.full((1, 1), appearance.background, np.float32) if backdrop is None else np.ascontiguousarray(
+        backdrop, dtype=np.float32)
+    for name, arr in (("texture", tex), ("backdrop", back)):
+        if arr.ndim != 2 or arr.size == 0:
+            raise ValueError(f"{name} must be a non-empty 2-D grey image, got shape {arr.shape}")
+    raycast.render(p, tex, back, image, depth, frame_key(appearance.seed, index))
     return image, depth
 
 
@@ -126,7 +136,7 @@ def render_camera(
     fine = Intrinsics.from_matrix(S @ intrinsics.K, k * intrinsics.width, k * intrinsics.height)
     image = render_view(surface, texture, fine, T_world_cam)[0]
     if psf_sigma > 0.0:
-        image = cv2.GaussianBlur(image, (0, 0), psf_sigma * k, borderType=cv2.BORDER_REFLECT)
+        image = np.asarray(cv2.GaussianBlur(image, (0, 0), psf_sigma * k, borderType=cv2.BORDER_REFLECT), np.float32)
     blocks = image.reshape(intrinsics.height, k, intrinsics.width, k)
     return blocks.mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
@@ -135,8 +145,9 @@ class FreeFlyer:
     """A camera flying freely in front of `surface`, sampled every `dt` seconds.
 
     `T_world_ref` is the reference camera pose and `T_world_start` the initial one (4×4, OpenCV camera axes).
-    `texture` is needed only to render images. `p_star` is the control pixel of the ground truth (default principal
-    point); `scaling` its scale gauge ("sl3" or "euclidean", see `sim.ground_truth`).
+    `texture` is needed only to render images; `backdrop` is the second texture around a finite target (see
+    `render_view`; `None`: uniform `appearance.background`). `p_star` is the control pixel of the ground truth
+    (default principal point); `scaling` its scale gauge ("sl3" or "euclidean", see `sim.ground_truth`).
     """
 
     def __init__(
@@ -148,6 +159,7 @@ class FreeFlyer:
         dt: float,
         texture: ArrayLike | None = None,
         appearance: Appearance = Appearance(),
+        backdrop: ArrayLike | None = None,
         p_star: tuple[float, float] | None = None,
         scaling: str = "sl3",
     ) -> None:
@@ -160,6 +172,7 @@ class FreeFlyer:
         self.dt = float(dt)
         self.texture = None if texture is None else np.ascontiguousarray(texture, dtype=np.float32)
         self.appearance = appearance
+        self.backdrop = None if backdrop is None else np.ascontiguousarray(backdrop, dtype=np.float32)
         self.p_star = p_star
         self.scaling = scaling
         self.index = 0
@@ -182,7 +195,8 @@ class FreeFlyer:
             if self.texture is None:
                 raise ValueError("rendering needs a texture: build the FreeFlyer with texture=<2-D grey image>")
             image, depth = render_view(
-                self.surface, self.texture, self.intrinsics, self.T_world_cam, self.appearance, self.index
+                self.surface, self.texture, self.intrinsics, self.T_world_cam, self.appearance, self.index,
+                self.backdrop,
             )
         return Frame(self.index, self.index * self.dt, self.T_world_cam.copy(), image, depth, truth)
 

@@ -5,15 +5,18 @@ Each surface lives in its own local frame, placed in the world by `T_world_surfa
 - `Saddle`: local `z = (x² − y²)/a` (`a` in metres); the paper's target is the saddle with identity rotation and
   centre `[0, 0, 1]` in the reference camera frame, i.e. `Z = 1 + (X² − Y²)/a` (the notes use `a = 1 m`).
 The texture is glued by the local `(x, y)` coordinates (orthographic along local z): the image spans
-`[−w/2, w/2] × [−h/2, h/2]` metres (`extent = (w, h)`), columns along +x, rows along +y, and repeats mirrored
-outside. The float64 intersection here is the exact reference (ground truth); `kernels/raycast.py` renders the
-same surfaces in float32 (tests compare the two).
+`[−w/2, w/2] × [−h/2, h/2]` metres (`extent = (w, h)`), columns along +x, rows along +y. By default the target is
+finite: outside its extent the surface carries a backdrop (a uniform grey or a second texture, see
+`sim.freeflyer.render_view`), like a poster on a wall. With `tiled=True` the texture repeats mirrored over the whole
+surface instead (a target that fills any view; it has twin poses: mirrored copies of the goal's view). The
+float64 intersection here is the exact reference (ground truth); `kernels/raycast.py` renders the same surfaces in
+float32 (tests compare the two).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,10 +38,12 @@ def _check_pose(T: ArrayLike) -> F64:
 
 @dataclass(frozen=True)
 class Surface(ABC):
-    """Common part: pose of the local frame in the world and textured extent `(w, h)` in metres."""
+    """Common part: pose of the local frame in the world, textured extent `(w, h)` in metres, and `tiled` (the
+    texture repeats mirrored over the whole surface instead of a finite target on a backdrop)."""
 
     T_world_surface: F64
     extent: tuple[float, float]
+    tiled: bool = field(default=False, kw_only=True)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "T_world_surface", _check_pose(self.T_world_surface))
@@ -147,8 +152,10 @@ class Saddle(Surface):
         return np.array([0.0, 0.0, 1.0 / centre[2]])
 
 
-def paper_saddle(depth: float = 1.0, a: float = 1.0, extent: tuple[float, float] = (1.0, 0.75)) -> Saddle:
+def paper_saddle(
+    depth: float = 1.0, a: float = 1.0, extent: tuple[float, float] = (1.0, 0.75), tiled: bool = False
+) -> Saddle:
     """The paper's target: saddle centred `depth` metres in front of the reference camera (world = reference frame)."""
     T = np.eye(4)
     T[2, 3] = depth
-    return Saddle(T, extent, a)
+    return Saddle(T, extent, a, tiled=tiled)

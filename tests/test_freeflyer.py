@@ -1,6 +1,7 @@
 """The free-flying camera plant: exact pose integration, ray-cast depth against the float64 geometry, rendered
 images consistent with the ground-truth warp (2), illumination and seeded noise, determinism, and the camera model
-(optical blur and pixel integration) of `render_camera`."""
+(optical blur and pixel integration) of `render_camera`; the finite target (backdrop, anti-aliased edges) and the
+tiled scene's twin pose."""
 
 from __future__ import annotations
 
@@ -12,9 +13,13 @@ from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, se3_exp, so3_exp
 from sim.freeflyer import Appearance, FreeFlyer, render_camera, render_view
 from sim.surfaces import Plane, paper_saddle
+from sim.textures import load_texture
 
 INTR = Intrinsics.centred(500.0, 550, 418)
 START = pose(so3_exp([-0.1, -0.31, 1.04]), [0.17, -0.11, 0.01])
+# The tiled scene's twin of the goal (target 1 m × 0.75 m, 1 m ahead): turned 180° about the optical axis, moved by
+# one extent along x and y; the texture mirrored about x = w/2 and y = h/2 makes its view the goal's.
+TWIN = pose(so3_exp([0.0, 0.0, np.pi]), [1.0, 0.75, 0.0])
 
 
 def smooth_texture(size: int = 512) -> np.ndarray:
@@ -73,14 +78,14 @@ def test_rendered_images_follow_the_ground_truth_warp() -> None:
 def test_illumination_gain_field_and_bias() -> None:
     saddle, tex = paper_saddle(), smooth_texture()
     plain, depth = render_view(saddle, tex, INTR, START)
-    hit = np.isfinite(depth)  # the background is not lit
     gain = (1.2, 0.1, -0.05, 0.02, 0.01, -0.03)
     lit, _ = render_view(saddle, tex, INTR, START, Appearance(gain=gain, bias=5.0))
     m = rays()
     x, y = m[:, 0].reshape(plain.shape), m[:, 1].reshape(plain.shape)
     S = gain[0] + gain[1] * x + gain[2] * y + gain[3] * x * x + gain[4] * x * y + gain[5] * y * y
-    np.testing.assert_allclose(lit[hit], (S * plain + 5.0)[hit], rtol=1e-5, atol=1e-3)
-    np.testing.assert_array_equal(lit[~hit], plain[~hit])
+    # The backdrop around the finite target and the rays that miss are lit like the target.
+    assert np.any(~np.isfinite(depth)) and np.any(plain == 128.0)
+    np.testing.assert_allclose(lit, S * plain + 5.0, rtol=1e-5, atol=1e-3)
 
 
 def test_noise_is_seeded_deterministic_and_gaussian() -> None:
@@ -124,8 +129,9 @@ def shifted(intr: Intrinsics, du: float, dv: float) -> Intrinsics:
 def test_camera_integrates_each_pixel_area() -> None:
     """Without optical blur, a camera pixel is the mean of the point renders through the k × k sub-pixel centres
     of its square (built here from shifted intrinsics, independently of `render_camera`'s oversampled grid), over
-    the central 200×150 region (at the silhouette float32 rounding may flip a grazing ray between hit and miss)."""
-    saddle, tex = paper_saddle(), smooth_texture()
+    the central 200×150 region (at the silhouette float32 rounding may flip a grazing ray between hit and miss). On
+    the tiled scene: at a finite target's edge each point render already covers its whole pixel (anti-aliasing)."""
+    saddle, tex = paper_saddle(tiled=True), smooth_texture()  # pixel integration, no target edge in view
     for T in (np.eye(4), START):
         for k in (1, 3):
             offsets = [(j + 0.5) / k - 0.5 for j in range(k)]
@@ -152,3 +158,58 @@ def test_camera_frames_follow_a_sub_pixel_motion() -> None:
         warped = cv2.remap(current, map_u, map_v, cv2.INTER_CUBIC)
         errors[name] = float(np.sqrt(np.mean((warped - reference[v, u]) ** 2)) / np.std(reference[v, u]))
     assert errors["camera"] < 0.1 < 0.5 < errors["point"], errors
+
+
+def poster(tiled: bool = False) -> Plane:
+    """A 1 m × 0.75 m plane 1 m ahead, fronto-parallel (the domain sweep's planar target)."""
+    return Plane(pose(np.eye(3), [0.0, 0.0, 1.0]), (1.0, 0.75), tiled=tiled)
+
+
+def test_finite_target_shows_the_backdrop_outside_its_extent() -> None:
+    """Inside the extent the finite target is the tiled one; outside, the uniform background or the distractor
+    texture; a ray that misses sees the background."""
+    tex, distractor = smooth_texture(), np.random.default_rng(1).uniform(0.0, 255.0, (300, 400)).astype(np.float32)
+    T = pose(so3_exp([0.0, 0.5, 0.2]), [0.3, 0.1, -0.2])
+    tiled, depth = render_view(poster(tiled=True), tex, INTR, T)
+    grey, _ = render_view(poster(), tex, INTR, T, Appearance(background=60.0))
+    busy, _ = render_view(poster(), tex, INTR, T, Appearance(background=60.0), backdrop=distractor)
+    R, o = poster().camera_in_surface(T)
+    hit = (rays() @ R.T).reshape(*depth.shape, 3)
+    xy = o[:2] + depth[..., None] * hit[..., :2]  # local (x, y) of the hit (ray parameter = camera depth)
+    margin = 0.01  # m: beyond a pixel footprint (< 3 mm here) from the edge
+    inner = (np.abs(xy[..., 0]) < 0.5 - margin) & (np.abs(xy[..., 1]) < 0.375 - margin)
+    outer = (np.abs(xy[..., 0]) > 0.5 + margin) | (np.abs(xy[..., 1]) > 0.375 + margin)
+    assert inner.sum() > 10_000 and outer.sum() > 10_000
+    np.testing.assert_allclose(grey[inner], tiled[inner], atol=1e-3)  # float32 rounding of the blend
+    np.testing.assert_allclose(busy[inner], tiled[inner], atol=1e-3)
+    assert np.all(grey[outer] == 60.0)
+    assert np.std(busy[outer]) > 30.0 and not np.allclose(busy[outer], tiled[outer], atol=20.0)
+    with pytest.raises(ValueError, match="backdrop"):
+        render_view(poster(), tex, INTR, T, backdrop=np.zeros((0, 3), np.float32))
+
+
+def test_finite_target_edges_are_anti_aliased() -> None:
+    """A white (255) target on the grey (128) backdrop, tilted and turned: one ray per pixel gives each pixel the
+    fraction of its area the target covers, as 16 × 16 rays per pixel measure it (`render_camera`, no blur), within
+    2 % of the contrast (the corner pixels, where the two edges' coverages are multiplied); point sampling without
+    coverage errs by up to half the contrast there."""
+    white = np.full((2, 2), 255.0, np.float32)
+    T = pose(so3_exp([0.3, -0.4, 0.35]), [0.2, -0.05, -0.1])
+    image, _ = render_view(poster(), white, INTR, T)
+    area = render_camera(poster(), white, INTR, T, psf_sigma=0.0, oversample=16)
+    edge = (area > 130.0) & (area < 253.0)
+    assert edge.sum() > 400
+    assert np.max(np.abs(image - area)) < 0.02 * 127.0
+    assert np.median(np.abs(image - area)[edge]) < 0.001 * 127.0
+    point = np.where(image > 191.5, 255.0, 128.0)  # the nearer side of each edge
+    assert np.max(np.abs(point - area)[edge]) > 0.4 * 127.0
+
+
+def test_the_tiled_plane_has_a_twin_pose_the_finite_one_does_not() -> None:
+    """From 1.25 m / 180° away the tiled plane looks exactly like the goal (what sent a domain-sweep trial to a
+    wrong pose, issue 23); the finite target does not."""
+    tex = load_texture("graf")
+    goal, twin = (render_view(poster(tiled=True), tex, INTR, T)[0] for T in (np.eye(4), TWIN))
+    assert np.max(np.abs(twin - goal)) < 0.1  # float32 rounding
+    goal, twin = (render_view(poster(), tex, INTR, T)[0] for T in (np.eye(4), TWIN))
+    assert np.mean(np.abs(twin - goal)) > 20.0
