@@ -46,6 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     dp = sub.add_parser("domain", help="success rate over random initial displacements of growing size")
     dp.add_argument("--target", choices=("planar", "saddle"), help="one target (default both)")
     dp.add_argument("--law", choices=("dvs", "ddvs"), help="one law (default both)")
+    dp.add_argument("--scene", choices=("finite", "distractors", "tiled"), default="finite",
+                    help="finite poster on grey (default), on a second texture, or the texture tiled everywhere")
     dp.add_argument("--trials", type=int, default=10, help="trials per size (default 10)")
     dp.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0, 3.0, 4.0, 5.0],
                     help="displacement sizes, units of 0.05 m and 15 degrees (default 1 2 3 4 5)")
@@ -78,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         **({"texture": args.texture} if args.texture else {}),
     )
     result = run_synthetic(args.law, setup, args.geometry)
-    summary = result.summary()
+    summary: dict[str, object] = dict(result.summary())  # a list of plot paths joins the scalars
     if not args.no_plots:
         summary["plots"] = [str(p) for p in save_plots(result, args.out, setup)]
     if args.json:
