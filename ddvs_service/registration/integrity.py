@@ -13,12 +13,17 @@ fits whatever the frame shows and stays near 1. Two measures keep the estimate h
   floor; the next ones, on a sharp texture, measure several grey levels of interpolation error). The engine's σ is
   capped at `scale_cap × anchor` (`PlanarRegistration.run(scale_cap=…)`), so residuals far beyond the good frames' stay
   outliers: their weight is bounded (Huber) or zero (Tukey), and the inlier ratio counts pixels consistent with
-  the good frames. Gradual changes (light, blur, a slowly entering occluder) move the anchor with them.
+  the good frames. Gradual changes (light, blur, a slowly entering occluder) move the anchor with them. The cap is
+  the anchor itself (`scale_cap` 1): a sweeping highlight or an occluder raises the frame's median residual while
+  the fit on the rest stays right, and a looser cap (2×) let the weights follow them.
+- the scale test is coarse (`scale_jump` 4): on a texture with large uniform regions a misregistered fit keeps many
+  pixels near the noise level, and a correct fit under a 43 % occluder measures 1.5–2.4× the anchor, so the two
+  overlap; the service's error guard (`service.guard`) is the finer test of a jump.
 - plausibility of a converged frame (`judge`): its own scale at most `scale_jump × anchor`, and the ROI corners
   within `max(corner_jump_fraction × ROI size, min_corner_jump_px)` pixels of where the frame started
   (the constant-velocity prediction or the last good estimate): consecutive frames at 30 Hz move a few pixels and
-  the prediction absorbs most of it (a dropped frame or an irregular stream adds a period or more of motion): a
-  jump of a quarter of the template is a different optimum.
+  the prediction absorbs most of it (a dropped frame or an irregular stream adds a period or more of motion: up to
+  11 px at the saturated rotation, f = 420 px): a larger jump is a different optimum.
 
 Before the anchor is defined only the corner test applies. The anchor survives a re-acquisition (the reference, and
 so the scale of a good fit, is the same).
@@ -44,10 +49,10 @@ class IntegrityConfig:
     anchor_frames: int = 15
     min_frames: int = 3
     min_anchor: float = 1.5
-    scale_cap: float = 2.0
-    scale_jump: float = 2.5
-    corner_jump_fraction: float = 0.25
-    min_corner_jump_px: float = 8.0
+    scale_cap: float = 1.0
+    scale_jump: float = 4.0
+    corner_jump_fraction: float = 0.15
+    min_corner_jump_px: float = 12.0
 
     def __post_init__(self) -> None:
         if not (1 <= self.min_frames <= self.anchor_frames and self.min_anchor > 0.0):
