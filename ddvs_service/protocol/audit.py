@@ -55,8 +55,7 @@ _NO_ROLE = re.compile(r"^(\w+) did not match any configured ACL subject")
 _AUTH_REFUSED = re.compile(r"^UsrPwd extension - Recv OpenSyn\. (Invalid \w+)\.")
 _TLS_REFUSED = re.compile(r"^(?:Can not accept TLS connection: )?(.*?)(?:\. Hint: .*)?$")
 _SUBJECT_NAME = re.compile(r"(?:CertCommonName|Username)\(([^)]*)\)")
-_LEVELS = {"TRACE": logging.DEBUG, "DEBUG": logging.DEBUG, "INFO": logging.INFO, "WARN": logging.WARNING,
-           "ERROR": logging.ERROR}
+_FORWARDED = {"WARN": logging.WARNING, "ERROR": logging.ERROR}
 
 log = logging.getLogger("ddvs.audit")
 
@@ -113,8 +112,8 @@ class Audit:
 
     # --- input ------------------------------------------------------------------------------------------------------
     def feed(self, raw: str) -> None:
-        """One line of Zenoh's log (ANSI colours allowed). Lines that are not about access are forwarded to the
-        `zenoh.<target>` logger at their level."""
+        """One line of Zenoh's log (ANSI colours allowed). Warnings and errors that are not about access are
+        forwarded to the `zenoh.<target>` logger; other lines are dropped."""
         match = _LINE.match(_ANSI.sub("", raw).rstrip("\n"))
         if match is None:
             return
@@ -126,8 +125,8 @@ class Audit:
             self._on_refused("tls_refused", "TLS handshake refused", detail)
         elif target.startswith(AUTH_TARGET) and (refused := _AUTH_REFUSED.match(message)):
             self._on_refused("auth_refused", "authentication refused", refused.group(1))
-        elif level in ("WARN", "ERROR"):
-            logging.getLogger("zenoh." + target.replace("::", ".")).log(_LEVELS[level], message)
+        elif level in _FORWARDED:
+            logging.getLogger("zenoh." + target.replace("::", ".")).log(_FORWARDED[level], message)
 
     def _on_acl(self, thread: str, message: str) -> None:
         if message.startswith("Using cached result: "):
