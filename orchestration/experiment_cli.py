@@ -1,6 +1,7 @@
 """`ddvs experiment synthetic`: the paper's synthetic experiment (see `orchestration.experiment_synthetic`);
-`ddvs experiment paper` (both experiments and the report, `orchestration.experiment_paper`) and `ddvs experiment
-domain` (convergence domain, `orchestration.experiment_domain`).
+`ddvs experiment paper` (both experiments and the report, `orchestration.experiment_paper`), `ddvs experiment
+domain` (convergence domain, `orchestration.experiment_domain`) and `ddvs experiment robustness` (the servo under a
+real camera's conditions, `orchestration.experiment_robustness`).
 
 Prints a human-readable summary, or one JSON line with `--json` (law, geometry source, converged, why it stopped,
 images to convergence, the paper's count, final translation (m) and rotation (deg) errors, retreat (m), coupling
@@ -59,7 +60,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     dp.add_argument("--out", type=Path, default=Path("reports/domain"), help="output directory (resumable)")
 
 
+    rp = sub.add_parser("robustness", help="the servo under coarse intrinsics, light changes, occluders, noise, blur, "
+                                           "JPEG, latency and frame loss (free-flying camera)")
+    rp.add_argument("--targets", nargs="+", choices=("planar", "saddle"), default=["planar"],
+                    help="targets (default planar)")
+    rp.add_argument("--laws", nargs="+", choices=("dvs", "ddvs"), default=["ddvs"], help="laws (default ddvs)")
+    rp.add_argument("--starts", nargs="+", default=["paper"],
+                    help="'paper' and/or domain-sweep starts 's<size>k<trial>', e.g. s3k0 s4k1 (default paper)")
+    rp.add_argument("--conditions", nargs="+", help="conditions to run (default all; see "
+                                                    "orchestration/experiment_robustness.py CONDITIONS)")
+    rp.add_argument("--max-images", type=int, default=1500, help="image budget per run (default 1500)")
+    rp.add_argument("--overrides", help="service configuration changes as JSON, e.g. "
+                                        "'{\"registration\": {\"robust\": \"huber\"}}'")
+    rp.add_argument("--out", type=Path, default=Path("reports/robustness"), help="output directory (resumable)")
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.experiment == "robustness":
+        from orchestration.experiment_robustness import run_robustness_command
+
+        return run_robustness_command(args)
     if args.experiment == "paper":
         from orchestration.experiment_paper import run_paper_command
 
