@@ -28,6 +28,7 @@ import zenoh
 ADMIN_SPACE = "@ros2_lv"
 EntityKind = Literal["NN", "MP", "MS", "SS", "SC"]
 ENTITY_KINDS: tuple[EntityKind, ...] = ("NN", "MP", "MS", "SS", "SC")
+_KIND_OF: dict[str, EntityKind] = {kind: kind for kind in ENTITY_KINDS}  # a token's chunk → its kind
 
 _RELIABILITY = {"reliable": 1, "best_effort": 2}
 _DURABILITY = {"transient_local": 1, "volatile": 2}
@@ -139,9 +140,9 @@ def parse_token(keyexpr: str) -> GraphEntity:
     if len(parts) < 9 or parts[0] != ADMIN_SPACE or not all(parts):
         raise ValueError(f"{keyexpr!r}: expected '{ADMIN_SPACE}/<domain>/<zid>/<nid>/<id>/<kind>/<enclave>/"
                          "<namespace>/<name>[/<topic>/<type>/<hash>/<qos>]' with no empty chunk")
-    kind = parts[5]
-    if kind not in ENTITY_KINDS:
-        raise ValueError(f"{keyexpr!r}: entity kind {kind!r}; expected one of {', '.join(ENTITY_KINDS)}")
+    kind = _KIND_OF.get(parts[5])
+    if kind is None:
+        raise ValueError(f"{keyexpr!r}: entity kind {parts[5]!r}; expected one of {', '.join(ENTITY_KINDS)}")
     node = GraphNode(int(parts[1]), parts[7].replace("%", "/"), parts[8], parts[6].replace("%", "/"))
     if kind == "NN":
         return GraphEntity(parts[2], int(parts[3]), int(parts[4]), kind, node)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any, Literal, Protocol, TypeVar
 
 import numpy as np
@@ -304,7 +305,7 @@ class GlobalInitializer:
         refined: dict[int, list[Candidate]] = {}  # by position in `screened`
         n_raw = 0
         stages: list[Callable[[], list[Hypothesis]]] = [
-            lambda s=stage: translation_hypotheses(search, translation, s, fm)
+            partial(translation_hypotheses, search, translation, stage, fm)
             for stage in rotation_scale_stages(search, fm)
         ]
         stages.append(lambda: foreshortened(search, side, [(c, G) for c, G, _ in screened], cfg))

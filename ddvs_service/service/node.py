@@ -175,8 +175,9 @@ class ServoNode:
         k = self.keys
         inbox = self._inbox
         ends = Endpoints(session, k, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
-        inputs = [ends.subscriber("camera_image", inbox.on_frame), ends.subscriber("camera_info", inbox.on_info),
-                  session.declare_queryable(k.key("servo_command"), inbox.on_query)]
+        ends.subscriber("camera_image", inbox.on_frame)  # `ends` holds its subscriptions until `ends.close()`
+        ends.subscriber("camera_info", inbox.on_info)
+        commands = session.declare_queryable(k.key("servo_command"), inbox.on_query)
         if k.rmw:
             declare_command_services(ends, inbox.on_query)
         self._pub = {name: ends.publisher(name)
@@ -199,7 +200,7 @@ class ServoNode:
             self._publish_state("stopped: service shutting down")
             token.undeclare()
             self._residual.close()
-            inputs[-1].undeclare()
+            commands.undeclare()
             ends.close()
             log.info("service stopped", extra=fields(**self._counters().model_dump(),
                                                       received=inbox.frames_received))
