@@ -272,8 +272,8 @@ class ServoNode:
         self.counters["rejected"] += 1
         log.warning(message, extra=fields(rejected=self.counters["rejected"]))
         self._publish_twist(ZERO6, Time.now())
-        state = self.pipeline.machine.state.value
-        self._emit_status(Status(robot=self.config.robot, state=state, frame_stamp_ns=0, seq=self._next_seq(),
+        state = self.pipeline.machine.state
+        self._emit_status(Status(robot=self.config.robot, state=state.value, frame_stamp_ns=0, seq=self._next_seq(),
                                  error=[0.0] * 6, error_norm=0.0, iterations=0, residual_rms=0.0, inlier_ratio=0.0,
                                  twist=[0.0] * 6, latency_ms=Latency(decode=0, registration=0, control=0, publish=0,
                                                                      total=0),
