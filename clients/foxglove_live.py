@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import foxglove
 import numpy as np
 from foxglove.messages import FrameTransform, Quaternion, Timestamp, Vector3
+from foxglove.websocket import ChannelView, Client, ServerListener
 
 from clients.channels import ChannelSpec, pose_topic, run_channels
 from ddvs_service.lie import so3_log
@@ -50,7 +51,7 @@ def pose_transform(camera_pose: list[float], stamp_ns: int) -> FrameTransform:
                                               w=float(np.cos(angle / 2.0))))
 
 
-class FoxgloveBridge:
+class FoxgloveBridge(ServerListener):
     """Serves `keys`' servo on `host:port` until `close()`; `port=0` picks a free port (`self.port`)."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, host: str = "127.0.0.1", port: int = 8765) -> None:
@@ -97,7 +98,7 @@ class FoxgloveBridge:
             log.warning("ground truth not shown: %s", exc)
 
     # --- foxglove.websocket.ServerListener: the residual key is subscribed only while a client watches ---------------
-    def on_subscribe(self, client: Any, channel: Any) -> None:
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         if channel.topic != self._residual_topic:
             return
         with self._lock:
@@ -106,7 +107,7 @@ class FoxgloveBridge:
                 self._residual_subscriber = self._session.declare_subscriber(self._keys.key(RESIDUAL),
                                                                              self._forward(RESIDUAL))
 
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         if channel.topic != self._residual_topic:
             return
         with self._lock:
