@@ -430,3 +430,27 @@ def test_full_servo_run_with_every_node_in_ros2_mode_converges(tmp_path: Path) -
     print({"converged": result.converged, "reason": result.reason, "images": result.images,
            "wall_s": round(result.wall_s, 1)})
     assert result.converged, f"{result.reason}; logs in {settings.out_dir / 'logs'}"
+
+
+def test_ros_options_from_the_command_line_and_their_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    import argparse
+
+    from ddvs_service.protocol.ros_settings import add_ros_arguments, ros_settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_ros_arguments(parser)
+    monkeypatch.delenv("DDVS_ROS_DOMAIN_ID", raising=False)
+    base = RosSettings(namespace="/cell", topics={"camera_info": "/cam/info"})
+    args = parser.parse_args(["--ros-domain-id", "5", "--ros-topic", "camera_image:=/cam/image_raw"])
+    assert ros_settings_from_args(args, base) == RosSettings(
+        domain_id=5, namespace="/cell", topics={"camera_info": "/cam/info", "camera_image": "/cam/image_raw"})
+    assert not ros_settings_from_args(parser.parse_args([])).enabled
+    monkeypatch.setenv("DDVS_ROS_DOMAIN_ID", "7")
+    assert ros_settings_from_args(parser.parse_args([])).domain_id == 7
+    for argv, message in ((["--ros-domain-id", "300"], "less than or equal to 232"),
+                          (["--ros-topic", "camera"], "expected ROW:=NAME"),
+                          (["--ros-topic", "servo_status:=/status"], "expected one of camera_image"),
+                          (["--ros-topic", "camera_image:=/9cam"], "not a fully qualified ROS name"),
+                          (["--ros-namespace", "cell"], "namespace 'cell'")):
+        with pytest.raises(SystemExit, match=message):
+            ros_settings_from_args(parser.parse_args(argv))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ddvs_service.protocol.ros_graph import check_ros_name
 
@@ -57,11 +57,23 @@ def add_ros_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def ros_settings_from_args(args: argparse.Namespace, base: RosSettings | None = None) -> RosSettings:
-    """Flags over the environment (`DDVS_ROS_DOMAIN_ID`) over `base` (a configuration file's settings)."""
+    """Flags over the environment (`DDVS_ROS_DOMAIN_ID`) over `base` (a configuration file's settings). A bad value
+    exits the command (`SystemExit`) with a message naming it and what is expected."""
+    try:
+        settings = _settings_from_args(args, base)
+        from ddvs_service.protocol.keys import Keys
+
+        Keys(ros=settings)  # checks the remapped rows and every ROS name now
+    except (ValueError, ValidationError) as exc:
+        raise SystemExit(f"ddvs: ROS 2 options: {exc}") from None
+    return settings
+
+
+def _settings_from_args(args: argparse.Namespace, base: RosSettings | None) -> RosSettings:
     update: dict[str, object] = {}
     domain = args.ros_domain_id if args.ros_domain_id is not None else os.environ.get("DDVS_ROS_DOMAIN_ID")
     if domain is not None:
-        update["domain_id"] = int(domain)
+        update["domain_id"] = domain
     if args.ros_namespace:
         update["namespace"] = args.ros_namespace
     topics = dict(base.topics) if base else {}
