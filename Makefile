@@ -15,12 +15,15 @@ demo: setup
 test: setup
 	@echo "[test] ruff"
 	$(VENV)/bin/ruff check .
+	@echo "[test] mypy (pyproject.toml, [tool.mypy])"
+	$(VENV)/bin/mypy
 	@echo "[test] pytest (every test, slow ones included)"
 	$(PY) -m pytest -q
 
 # Your own loop: the same checks without the tests marked slow (a few minutes on 2 cores).
 test-fast: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 	$(PY) -m pytest -q -m "not slow"
 
 typecheck: setup
@@ -40,4 +43,4 @@ certs:
 	@bash scripts/make_dev_certs.sh $(CERTS_DIR)
 
 clean:
-	rm -rf $(VENV) .pytest_cache reports
+	rm -rf $(VENV) .pytest_cache .mypy_cache reports
