@@ -1,7 +1,7 @@
 """The ddvs message protocol: key expressions, ROS 2 CDR codecs, JSON control plane, Zenoh session helpers.
 
 See `docs/protocol.md` for the key table, encodings and schemas. Importing this package is light (numpy, pydantic,
-zenoh: ~0.1 s); OpenCV is imported only when a PNG upload is encoded or decoded.
+zenoh); OpenCV is imported only when a PNG upload is encoded or decoded.
 """
 
 from ddvs_service.protocol.control import (

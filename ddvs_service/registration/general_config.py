@@ -35,9 +35,9 @@ class GeneralConfig:
       error dominates the residual. Worst error of (16) along the paper's trajectory, × the criterion's tolerance
       (benchmarks/general_accuracy.py): anti-aliased frames (texture blurred by 2 texels, 4×4 rays per pixel)
       0.80 with the B-spline vs 2.71 with Keys; frames with a 0.7 px optical blur 1.80 vs 5.0; point-sampled
-      (aliased) frames 8.7 vs 13.3, but 1.05 vs 0.76 on their first 180 images. The B-spline's prefilter, only over
-      a window around the warped ROI (`spline_window`; the whole 550×418 image took ~0.7 ms), brings a tracking
-      frame from 1.3–1.8 ms (Keys) to 2.2 ms on 2 cores.
+      (aliased) frames 8.7 vs 13.3, but 1.05 vs 0.76 on their first 180 images. The B-spline's prefilter runs only over
+      a window around the warped ROI (`spline_window`); it makes a tracking frame dearer than with Keys
+      (docs/performance.md).
     """
 
     base: RegistrationConfig = field(default_factory=RegistrationConfig)

@@ -1,7 +1,7 @@
 """What `ddvs serve` does before it declares itself alive: the kernels' warm-up.
 
 Warm-up: Taichi compiles (or, with its offline cache warm, loads and links) each kernel on its first launch, which
-made the first frame after a start or an upload take 0.4–1.5 s (cold cache: seconds more). `warm_up` runs the
+made the first frame after a start or an upload take tens of frame periods (docs/performance.md). `warm_up` runs the
 configuration's whole frame path once on a synthetic scene — reference preparation, the global initialiser of the
 first frame, tracking, the control law — so that those launches happen before the service answers anything.
 Kernels are specialised on their template arguments (gain grid, model, interpolation), not on image sizes, so any
