@@ -333,7 +333,11 @@ def test_no_escape_from_the_robots_exact_keys(certs: Path) -> None:
         assert foreign.payloads == [] and b"frame" not in wildcard.payloads
 
 
-def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_certs: Path) -> None:
+def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_certs: Path, tmp_path: Path) -> None:
+    self_signed, self_signed_key = tmp_path / "operator.pem", tmp_path / "operator.key"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
+                    "-keyout", str(self_signed_key), "-out", str(self_signed), "-days", "1", "-subj", "/CN=operator",
+                    "-addext", "extendedKeyUsage=clientAuth"], check=True, capture_output=True)
     with mtls_network(certs) as net:
         port = net.endpoint.rsplit(":", 1)[1]
         attempts = {
@@ -343,6 +347,8 @@ def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_
                 "operator", [net.endpoint], TlsFiles(certs / "operator" / "ca.pem",
                                                      rogue_certs / "operator" / "operator.pem",
                                                      rogue_certs / "operator" / "operator.key")),
+            "a self-signed certificate": client_config(
+                "operator", [net.endpoint], TlsFiles(certs / "operator" / "ca.pem", self_signed, self_signed_key)),
             "the router's own certificate (serverAuth only)": client_config(
                 "operator", [net.endpoint], TlsFiles.for_role(certs, "router")),
             "plain TCP": client_config("operator", [f"tcp/127.0.0.1:{port}"]),
