@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -183,7 +184,7 @@ def test_certificates_per_purpose_router_serves_roles_only_connect(tmp_path: Pat
     assert not any(list((tmp_path / role).glob("router*")) for role in ROLES)  # the router's key is only in router/
 
 
-def test_certificates_are_idempotent_and_reissued_when_missing_or_renamed(tmp_path: Path) -> None:
+def test_certificates_are_idempotent_and_reissued_when_missing_renamed_or_rotated(tmp_path: Path) -> None:
     subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True)
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     second = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
@@ -197,6 +198,15 @@ def test_certificates_are_idempotent_and_reissued_when_missing_or_renamed(tmp_pa
                              capture_output=True, text=True)
     assert renamed.stdout.strip() == f"created {tmp_path}/router/router.pem"
     assert "DNS:robot-host.lab" in _x509(tmp_path / "router" / "router.pem")
+    shutil.rmtree(tmp_path / "ca")  # rotating the CA re-issues every certificate, each directory gets the new CA
+    rotated = subprocess.run(["bash", str(SCRIPT), str(tmp_path)], check=True, capture_output=True, text=True)
+    assert len(rotated.stdout.splitlines()) == 2 + len(ROLES)
+    for name in ("router", *ROLES):
+        pem = tmp_path / name / f"{name}.pem"
+        assert pem.read_bytes() != before[pem] and (tmp_path / name / "ca.pem").read_bytes() != before[
+            tmp_path / name / "ca.pem"]
+        subprocess.run(["openssl", "verify", "-CAfile", str(tmp_path / "ca" / "ca.pem"), str(pem)], check=True,
+                       capture_output=True)
 
 
 def test_certificate_roles_come_from_ddvs_cert_roles(tmp_path: Path) -> None:
