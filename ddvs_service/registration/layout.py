@@ -9,6 +9,7 @@ after `G`: the column order of `kernels.general_step`. The engines index their u
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,18 +30,24 @@ class ParamLayout:
         """Eq. (2)'s unknowns; `n_rho` = 0 when ρ* is not among them."""
         return cls((("G", 8), ("e", 3), ("rho", n_rho), ("S", grid_rows * grid_cols), ("beta", 1)))
 
-    @property
+    @cached_property
     def size(self) -> int:
         return sum(n for _, n in self.blocks)
 
+    @cached_property
+    def _slices(self) -> dict[str, slice]:
+        """Index range of each block (computed once: the solvers look blocks up on every iteration)."""
+        slices, start = {}, 0
+        for block, n in self.blocks:
+            slices[block] = slice(start, start + n)
+            start += n
+        return slices
+
     def slice(self, name: str) -> slice:
         """Index range of block `name` in the parameter vector."""
-        start = 0
-        for block, n in self.blocks:
-            if block == name:
-                return slice(start, start + n)
-            start += n
-        raise KeyError(f"no parameter block {name!r}; blocks are {[b for b, _ in self.blocks]}")
+        if name not in self._slices:
+            raise KeyError(f"no parameter block {name!r}; blocks are {[b for b, _ in self.blocks]}")
+        return self._slices[name]
 
     def indices(self, *names: str) -> NDArray[np.intp]:
         """Positions of the blocks `names` in the parameter vector, in layout order."""
@@ -50,4 +57,4 @@ class ParamLayout:
         """The blocks of a parameter (or update) vector, by name."""
         if x.shape != (self.size,):
             raise ValueError(f"parameter vector has shape {x.shape}, expected ({self.size},)")
-        return {name: x[self.slice(name)] for name, _ in self.blocks}
+        return {name: x[s] for name, s in self._slices.items()}

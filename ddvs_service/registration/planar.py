@@ -36,6 +36,7 @@ from ddvs_service.registration.solver import (
     gauss_newton,
     in_sequence,
     symmetric_index,
+    unchanged,
     with_inliers,
 )
 from kernels.launch import Prepared
@@ -282,11 +283,11 @@ class _PlanarLevel:
         self.engine._fill_state(self.G_l, self.state)
         self._launch()
         engine = self.engine
-        return NormalEquations.unpack(engine._work[: engine._nacc], engine.layout.size, engine._sym)
+        return NormalEquations.unpack(engine._work[: engine._nacc], len(self.free), engine._sym)
 
     def reduce(self, equations: NormalEquations, iteration: int) -> Reduced:
         if self._subset is None:
-            return Reduced(equations.H, equations.g, lambda x: x)
+            return Reduced(equations.H, equations.g, unchanged)
 
         def expand(x: F64) -> F64:
             delta = np.zeros(len(self.free))

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol, TypeVar
+from typing import Protocol, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,7 +35,7 @@ C = TypeVar("C")  # a model's candidate estimate
 L = TypeVar("L")  # a pyramid level
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class NormalEquations:
     """One evaluation at an estimate: `H = JᵀWJ`, `g = JᵀWr` over the model's columns, the count of valid and
     inlier ROI pixels, `Σ r²` over the valid ones and the median |r|."""
@@ -57,6 +57,11 @@ class NormalEquations:
         return cls(acc[symmetric], acc[nt : nt + n], n_valid, n_inliers, sum_r2, median)
 
 
+def unchanged(x: F64) -> F64:
+    """The `expand` of normal equations solved over every unknown."""
+    return x
+
+
 def symmetric_index(n: int) -> NDArray[np.intp]:
     """`idx[i, j]`: position of `H[min(i, j), max(i, j)]` in the kernel's row-major upper triangle."""
     i, j = np.minimum.outer(np.arange(n), np.arange(n)), np.maximum.outer(np.arange(n), np.arange(n))
@@ -72,7 +77,7 @@ class Fit(Protocol):
     cost: float  # mean squared residual over the valid pixels
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Reduced:
     """The normal equations over the unknowns actually solved (`H`, `g`), and the map `expand` of their solution to
     the model's full update vector."""
@@ -152,10 +157,10 @@ def gauss_newton(
                 return LevelOutcome(it, False, f"degenerate normal equations at level {level_index} (textureless ROI?)"
                                                f"{degenerate}", True)
         try:
-            delta = reduced.expand(np.asarray(np.linalg.solve(reduced.H, -reduced.g), dtype=np.float64))
+            delta = reduced.expand(cast(F64, np.linalg.solve(reduced.H, -reduced.g)))
         except np.linalg.LinAlgError:
             delta = reduced.expand(np.full(len(reduced.g), np.nan))
-        if not np.all(np.isfinite(delta)):
+        if not math.isfinite(float(delta.sum())):  # any NaN or infinite entry makes the sum non-finite
             return LevelOutcome(it, False, f"non-finite update at level {level_index}", True)
         candidate, step = model.trial(delta)
         if not step <= limit:  # also catches NaN
