@@ -21,11 +21,13 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.rows import print_rows  # noqa: E402
 
 
 def first_launch(rows: int, cols: int) -> dict[str, float]:
     """This process: time the first `planar_step` launch on a 200×150 ROI, then the median of 50 more."""
-    sys.path.insert(0, str(ROOT))
     import cv2
     import numpy as np
 
@@ -80,16 +82,10 @@ def main() -> None:
         print(json.dumps(first_launch(*args.grid)))
         return
     rows = [measure(*(int(n) for n in grid.split("x"))) for grid in args.grids]
-    if args.markdown:
-        print("| gain grid | first launch, cold cache | first launch, warm cache | launch afterwards | load |")
-        print("|---|---|---|---|---|")
-        for r in rows:
-            cold, warm = r["cold"], r["warm"]
-            print(f"| {r['grid']} | {cold['first_s']:.1f} s | {warm['first_s']:.1f} s | {warm['launch_ms']:.2f} ms "
-                  f"| {r['load_average']:.2f} |")
-    else:
-        for r in rows:
-            print(json.dumps(r))
+    print_rows(rows, args.markdown,
+               ["gain grid", "first launch, cold cache", "first launch, warm cache", "launch afterwards", "load"],
+               lambda r: [r["grid"], f"{r['cold']['first_s']:.1f} s", f"{r['warm']['first_s']:.1f} s",
+                          f"{r['warm']['launch_ms']:.2f} ms", f"{r['load_average']:.2f}"])
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.rows import print_rows  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for running as a script
     Command,
     Header,
@@ -317,24 +318,24 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.2f}", flush=True)
     rows = [measure(rate, args.seconds, hogs, args.realtime_priority, watcher)
             for hogs in args.hogs for rate in args.rates for watcher in args.watchers]
-    if args.markdown:
-        print("| input rate | watcher | hogs | frames published / answered / dropped / stale | "
-              "twists within a period | end to end median / p99 / max | service median / p99 | "
-              "registration median / p99 | transport median / p99 | p99 frames: service share | "
-              "median 1st / 2nd half | load |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-        for r in rows:
-            e, sv, rg, tr = r["end_to_end_ms"], r["service_ms"], r["registration_ms"], r["transport_ms"]
-            print(f"| {r['rate_hz']:.0f} Hz | {r['watcher']} | {r['hogs']} | {r['published']} / {r['twists']} / "
-                  f"{r['dropped']} / "
-                  f"{r['stale']} | {r['within_period']:.1%} | "
-                  f"{e['median']:.2f} / {e['p99']:.2f} / {e['max']:.1f} ms | {sv['median']:.2f} / {sv['p99']:.2f} ms | "
-                  f"{rg['median']:.2f} / {rg['p99']:.2f} ms | {tr['median']:.2f} / {tr['p99']:.2f} ms | "
-                  f"{r['tail_service_share']:.0%} | {r['median_halves_ms'][0]:.2f} / {r['median_halves_ms'][1]:.2f} ms "
-                  f"| {r['load_average']:.2f} |")
-    else:
-        for r in rows:
-            print(json.dumps(r))
+    print_rows(rows, args.markdown, MARKDOWN_HEADER, markdown_cells)
+
+
+MARKDOWN_HEADER = ["input rate", "watcher", "hogs", "frames published / answered / dropped / stale",
+                   "twists within a period", "end to end median / p99 / max", "service median / p99",
+                   "registration median / p99", "transport median / p99", "p99 frames: service share",
+                   "median 1st / 2nd half", "load"]
+
+
+def markdown_cells(r: dict) -> list[str]:
+    def ms(x: dict, with_max: bool = False) -> str:
+        return f"{x['median']:.2f} / {x['p99']:.2f}" + (f" / {x['max']:.1f}" if with_max else "") + " ms"
+
+    return [f"{r['rate_hz']:.0f} Hz", r["watcher"], str(r["hogs"]),
+            f"{r['published']} / {r['twists']} / {r['dropped']} / {r['stale']}", f"{r['within_period']:.1%}",
+            ms(r["end_to_end_ms"], True), ms(r["service_ms"]), ms(r["registration_ms"]), ms(r["transport_ms"]),
+            f"{r['tail_service_share']:.0%}",
+            f"{r['median_halves_ms'][0]:.2f} / {r['median_halves_ms'][1]:.2f} ms", f"{r['load_average']:.2f}"]
 
 
 if __name__ == "__main__":

@@ -22,9 +22,12 @@ import threading
 import time
 from pathlib import Path
 
-from bench_service import ROOT, F, H, W, command, frame_at, free_port, scene
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-from ddvs_service.protocol import (
+from benchmarks.bench_service import F, H, W, command, frame_at, free_port, scene  # noqa: E402
+from benchmarks.rows import print_rows  # noqa: E402
+from ddvs_service.protocol import (  # noqa: E402
     Header,
     Keys,
     SessionConfig,
@@ -35,7 +38,7 @@ from ddvs_service.protocol import (
     image_from_array,
     open_session,
 )
-from ddvs_service.protocol.upload import encode_upload
+from ddvs_service.protocol.upload import encode_upload  # noqa: E402
 
 KEYS = Keys("ddvs", "boot")
 
@@ -140,15 +143,9 @@ def main() -> None:
     }))
     prepare(config, port)
     rows = [restart(config, port, warmup) for _ in range(args.runs) for warmup in (True, False)]
-    if args.markdown:
-        print("| warm-up | process start → alive | → first twist | warm-up itself | load |")
-        print("|---|---|---|---|---|")
-        for r in rows:
-            print(f"| {'yes' if r['warmup'] else 'no'} | {r['alive_s']:.2f} s | {r['first_twist_s']:.2f} s | "
-                  f"{r['warm_up_s'] or 0:.2f} s | {r['load_average']:.2f} |")
-    else:
-        for r in rows:
-            print(json.dumps(r))
+    print_rows(rows, args.markdown, ["warm-up", "process start → alive", "→ first twist", "warm-up itself", "load"],
+               lambda r: ["yes" if r["warmup"] else "no", f"{r['alive_s']:.2f} s", f"{r['first_twist_s']:.2f} s",
+                          f"{r['warm_up_s'] or 0:.2f} s", f"{r['load_average']:.2f}"])
 
 
 if __name__ == "__main__":
