@@ -10,7 +10,7 @@ import threading
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
-    from ddvs_service.protocol.ros_settings import add_ros_arguments
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
 
     parser.add_argument("--config", required=True, help="bridge JSON file (e.g. configs/arm/ur5_bridge.json)")
     parser.add_argument("--rate", type=float, default=100.0, help="command republishing rate in Hz (default 100)")
@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from clients.bridge_node import BridgeNode
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
-    from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.security import check_robot_covered
 
     setup_logging("INFO")

@@ -211,7 +211,7 @@ def stream(capture, publisher: CameraPublisher, fps: float | None, stop: threadi
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
-    from ddvs_service.protocol.ros_settings import add_ros_arguments
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
 
     parser.add_argument("source", help="webcam device index (e.g. 0) or video file path")
     calibration = parser.add_mutually_exclusive_group(required=True)
@@ -248,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
-    from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
 
     setup_logging("INFO")
     capture = _open_capture(args.source)

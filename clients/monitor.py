@@ -145,7 +145,7 @@ def render(snap: dict[str, Any], title: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
-    from ddvs_service.protocol.ros_settings import add_ros_arguments
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
 
     parser.add_argument("--foxglove", action="store_true",
                         help="serve a live Foxglove view (WebSocket, foxglove.websocket.v1) instead of the terminal's")
@@ -165,7 +165,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
-    from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
 
     keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
     if args.foxglove:

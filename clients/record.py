@@ -25,7 +25,7 @@ def recording_meta(keys: Keys, extra: dict[str, Any] | None = None) -> dict[str,
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
-    from ddvs_service.protocol.ros_settings import add_ros_arguments
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
 
     parser.add_argument("out", help="new (or empty) bag directory; with --recover: the bag of a killed recorder")
     parser.add_argument("--recover", action="store_true",
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from clients.channels import run_channels
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
-    from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
 
     setup_logging("INFO")
     if args.recover:

@@ -12,7 +12,7 @@ START_POSES = ("home", "reference", "start")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol import add_zenoh_arguments
-    from ddvs_service.protocol.ros_settings import add_ros_arguments
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
 
     parser.add_argument("--config", required=True, help="scene JSON file (e.g. configs/arm/ur5_poster.json)")
     parser.add_argument("--clock", choices=["realtime", "lockstep"], default="realtime",
@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol import Keys, open_session, session_config_from_args
-    from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.security import check_robot_covered
     from sim.arm import ArmSim
     from sim.arm_node import ArmNode, ArmNodeSettings

@@ -435,7 +435,7 @@ def test_full_servo_run_with_every_node_in_ros2_mode_converges(tmp_path: Path) -
 def test_ros_options_from_the_command_line_and_their_errors(monkeypatch: pytest.MonkeyPatch) -> None:
     import argparse
 
-    from ddvs_service.protocol.ros_settings import add_ros_arguments, ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import add_ros_arguments, ros_settings_from_args
 
     parser = argparse.ArgumentParser()
     add_ros_arguments(parser)

@@ -6,7 +6,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ddvs_service.protocol.ros_settings import add_ros_arguments
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
     from ddvs_service.protocol.session import add_zenoh_arguments
 
     parser.add_argument("--config", metavar="FILE", help="service configuration (JSON); defaults apply without it")
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from ddvs_service.logs import setup_logging
-    from ddvs_service.protocol.ros_settings import ros_settings_from_args
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.session import session_config_from_args
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.node import ServoNode
