@@ -183,8 +183,12 @@ def test_persistence_is_off_the_loop_thread(tmp_path: Path) -> None:
         op = Operator(port)
         try:
             deadline = time.monotonic() + 60.0
-            while not op.command(op="get_state", timeout=1.0).ok:
-                assert time.monotonic() < deadline
+            while True:  # until the node's queryable answers (no reply at all before it is declared)
+                try:
+                    if op.command(op="get_state", timeout=1.0).ok:
+                        break
+                except AssertionError:
+                    assert time.monotonic() < deadline, "the node did not come up"
             for command in (upload_command(img), {"op": "start"},
                             {"op": "set_config", "config": {"control": {"gains": 0.3}}}, {"op": "stop"}):
                 replies.append(op.command(**command).ok)
