@@ -2,9 +2,10 @@
 
 A service that was servoing is restarted while a camera publishes at 30 Hz (this process, stamps = wall clock):
 `alive` is the first reply to `get_state`, `first twist` the first twist answering a frame, both measured from the
-moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). `--warmup`
-(the default) compiles the configuration's kernels before the service declares itself alive; `--no-warmup` leaves
-them to the first frame. The warm-up's own time is read from the service's log.
+moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). This process
+listens and the service connects to it as it opens its session, so no reconnection period of Zenoh's is measured.
+The warm-up (the default) compiles the configuration's kernels before the service declares itself alive;
+`--no-warmup` leaves them to the first frame. The warm-up's own time is read from the service's log.
 
     .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--gain-grid 1 1] [--markdown]
 """
@@ -66,7 +67,7 @@ def prepare(config: Path, port: int) -> None:
     """A first run: upload the reference and start the servo, so that the state directory resumes SERVOING (this
     run also fills Taichi's offline cache)."""
     service = spawn(config)
-    with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+    with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         wait_alive(session, time.monotonic() + 300)
         assert command(session, KEYS, op="set_reference", source="upload",
                        image={"format": "png", "data": encode_upload(scene())}).ok
@@ -89,7 +90,7 @@ def wait_alive(session, deadline: float) -> float:
 def restart(config: Path, port: int, warmup: bool) -> dict:
     frames = [frame_at(scene(), k) for k in range(90)]
     first_twist: list[float] = []
-    with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+    with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
 
         def on_twist(sample) -> None:  # a twist answering a frame carries its wall-clock stamp (a zero one: 0)
             if not first_twist and decode_twist_stamped(sample.payload.to_bytes()).header.stamp.to_ns() >= t_frames:
@@ -137,7 +138,7 @@ def main() -> None:
     state = tempfile.mkdtemp(prefix="ddvs-boot-")
     config = Path(state) / "serve.json"
     config.write_text(json.dumps({
-        "robot": "boot", "state_dir": state, "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
+        "robot": "boot", "state_dir": state, "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]},
         "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
         "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid},
     }))
