@@ -212,3 +212,21 @@ def test_persistence_is_off_the_loop_thread(tmp_path: Path) -> None:
     state = ServoNode(config)  # what a restart reads
     assert state.config.control.gains == 0.3 and state.pipeline.reference is None
     state.writer.close()
+
+
+def test_status_only_on_state_changes_when_not_every_frame(tmp_path: Path) -> None:
+    """`status_every_frame: false`: every frame is still answered with a twist, a Status only when the state changes."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state").model_copy(update={"status_every_frame": False})
+    img = scene()
+    frames = servo_frames(img)
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_reference", source="next_frame").ok
+        assert op.send(img)["state"] == "READY"  # a new state: a Status
+        assert op.command(op="start").ok
+        for k in range(6):
+            op.frames.put(encode_image(image_from_array(frames[k % len(frames)], "mono8")))
+            time.sleep(0.2)
+        answered(op, 7)
+    assert [s["state"] for s in op.statuses] == ["READY", "SERVOING"], [s["state"] for s in op.statuses]
+    assert all(np.any(t) for t in op.twists[1:7])
