@@ -151,7 +151,7 @@ def table(trials: list[VispTrial], rates: dict[tuple[str, float], tuple[int, int
         for law in ("ddvs", "dvs"):
             w, n = rates.get((law, size), (0, 0))
             ours.append(f"{w}/{n} ({w / n:.0%})" if n else "—")
-        lines.append(f"| {size:g} | {size * UNIT_T_M:.3f} | {size * UNIT_R_DEG:.0f} | {len(wins)}/{len(group)} "
+        lines.append(f"| {size:g} | {size * UNIT_T_M:.3f} | {size * UNIT_R_DEG:g} | {len(wins)}/{len(group)} "
                      f"({len(wins) / len(group):.0%}) | {count['diverged']} | {count['budget']} "
                      f"| {count['wrong_pose']} | {np.mean(wins) if wins else float('nan'):.0f} | {ours[0]} "
                      f"| {ours[1]} |")
