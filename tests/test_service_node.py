@@ -180,8 +180,9 @@ def served(tmp_path: Path) -> Iterator[tuple[Service, Operator, ServiceConfig]]:
 
 
 def converge(op: Operator, image: np.ndarray) -> dict:
-    """Send `image` for `converge_frames` (3) frames: a servo at zero error is then CONVERGED."""
-    for _ in range(3):
+    """Send `image` for `settle_frames` + `converge_frames` (10 + 3) frames: a servo at zero error is then CONVERGED
+    (an earlier frame's error has left the mean the stop compares)."""
+    for _ in range(13):
         status = op.send(image)
     return status
 
@@ -212,7 +213,16 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     assert status["state"] == "CONVERGED" and status["error_norm"] < 1e-3
     assert not np.any(op.twists[-1])
 
-    status = op.send(shifted(img, 6.0, -4.0, 3.0))  # the camera moved: servo resumes
+    # The camera jumped 6 px and 3° in one frame (90°/s, beyond any servoed motion): a suspect fit, held still (LOST,
+    # zero twist) until 30 frames agree on the new error (the error guard), then the servo resumes.
+    moved = shifted(img, 6.0, -4.0, 3.0)
+    status = op.send(moved)
+    assert status["state"] == "LOST" and "suspect fit" in status["message"] and not np.any(op.twists[-1]), status
+    for _ in range(40):
+        status = op.send(moved)
+        if status["state"] == "SERVOING":
+            break
+        assert not np.any(op.twists[-1]), status
     assert status["state"] == "SERVOING", status
     assert status["error_norm"] > 5e-3
     twist = op.twists[-1]
@@ -225,7 +235,10 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     assert status["state"] == "LOST", status
     assert not np.any(op.twists[-1])
 
-    status = op.send(shifted(img, 2.0, 1.0))  # target back in view: re-acquired
+    for _ in range(2):  # target back in view: re-acquired, held still until 3 tracked frames confirm it
+        status = op.send(shifted(img, 2.0, 1.0))
+        assert status["state"] == "LOST" and not np.any(op.twists[-1]), status
+    status = op.send(shifted(img, 2.0, 1.0))
     assert status["state"] in ("SERVOING", "CONVERGED"), status
 
     assert op.command(op="stop").ok

@@ -7,8 +7,9 @@ fits whatever the frame shows and stays near 1. Two measures keep the estimate h
 
 - an anchored scale: `anchor` is the median of the robust scales measured on the last `anchor_frames` accepted
   frames (grey levels, 1.4826 · median |r| of each frame before any cap), never below `min_anchor` (an 8-bit
-  camera's frames differ from the reference by quantisation, noise and interpolation: a first frame identical to
-  the reference must not make every later one look implausible), and defined only once `min_frames` frames were
+  camera's frames differ from the reference by quantisation, noise and interpolation: after frames identical to
+  the reference, one turned 3° measures 7 grey levels of interpolation error on a sharp texture, and must not look
+  implausible), and defined only once `min_frames` frames were
   accepted (the first frame after a reference taken from the stream is the reference itself, σ at the engine's
   floor; the next ones, on a sharp texture, measure several grey levels of interpolation error). The engine's σ is
   capped at `scale_cap × anchor` (`PlanarRegistration.run(scale_cap=…)`), so residuals far beyond the good frames' stay
@@ -48,10 +49,10 @@ class IntegrityConfig:
 
     anchor_frames: int = 15
     min_frames: int = 3
-    min_anchor: float = 1.5
+    min_anchor: float = 3.0
     scale_cap: float = 1.0
     scale_jump: float = 4.0
-    corner_jump_fraction: float = 0.15
+    corner_jump_fraction: float = 0.25
     min_corner_jump_px: float = 12.0
 
     def __post_init__(self) -> None:

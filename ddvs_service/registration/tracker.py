@@ -4,7 +4,7 @@ Consecutive frames move little, so a frame is first solved on the finest `config
 only, from a constant-velocity prediction when `config.predict_motion` is set and the last two frames converged:
 `G_k = G_{k−1} · G_{k−2}⁻¹ · G_{k−1}` (the last inter-frame motion `G_{k−1} G_{k−2}⁻¹`, in current-image pixels,
 applied once more). When that does not converge the frame is solved again from the last good estimate over the
-whole pyramid.
+whole pyramid, its robust scale estimated afresh (no cap).
 
 The state is `G` (SL(3), reference → current full-image pixels), the gains `S`, the bias `β` (eq. (4)) and the
 robust scale σ. Integrity (`registration.integrity`): the σ the engine uses is capped at a multiple of the scale of
@@ -78,8 +78,10 @@ class Tracker:
             result = self._problem.run(current, G0=start, gains0=self._gains, beta0=self._beta, scale0=self._scale,
                                        first_level=config.tracking_levels - 1, tolerance_px=tolerance, scale_cap=cap)
             if not result.converged and (start is not self._G or len(result.iterations) < len(self._problem.levels)):
+                # the robust scale re-estimated on this frame: a sudden motion of several pixels leaves the last
+                # frames' σ far below this frame's residuals, and Tukey weights at that σ reject the signal itself
                 result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta,
-                                           scale0=self._scale, tolerance_px=tolerance, scale_cap=cap)
+                                           scale0=None, tolerance_px=tolerance)
         except Exception as exc:  # the tracker's contract: report, never raise
             return self._failure(f"error: {type(exc).__name__}: {exc}")
         if not np.all(np.isfinite(result.G)):

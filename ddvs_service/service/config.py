@@ -89,8 +89,9 @@ class ControlSettings(_Strict):
     """The servo law (`ControlConfig`): `law` dvs | dvs_reduced | ddvs, gains (1/s), control pixel, `c_star`,
     saturation (m/s, rad/s) and the stop threshold on the error norm, applied by the service's state machine: CONVERGED
     after `converge_frames` consecutive frames below it (the law itself keeps commanding `Λ ε̄` until then);
-    `resume_factor` × stop threshold is the hysteresis threshold above which a CONVERGED servo resumes. Both compare
-    the norm of the mean error over the last `settle_frames` tracked frames: near the goal a 70×70 template's error
+    `resume_factor` × stop threshold is the hysteresis threshold above which a CONVERGED servo resumes (the frame's
+    own norm: a disturbance is answered at once). The stop compares the norm of the mean error over the last
+    `settle_frames` tracked frames: near the goal a 70×70 template's error
     norm jitters at 1.5–2.3e-3 from frame to frame on clean frames (estimation noise; the camera is 0.5 mm away), so
     a single frame's norm stops the servo when the noise happens to dip, not when the pose is there."""
 

@@ -7,7 +7,8 @@ farther than `jump_abs + jump_rel ‖ε_trusted‖` from the last trusted error 
 reported as suspect and the service treats it as a lost frame (zero twist, re-acquisition). A genuine jump — the
 camera moved by hand while the servo was LOST — is adopted once `rebase_frames` consecutive tracked frames agree
 with each other (each within `jump_abs` of the one before: the camera holds still meanwhile), which a wrong fit
-wandering with the image noise does not do for long.
+wandering with the image noise does not do for long. The service applies it only while the servo is active
+(SERVOING, CONVERGED, LOST): the first frame after a start is trusted.
 """
 
 from __future__ import annotations

@@ -168,14 +168,18 @@ class ServoPipeline:
             self.rho_coeffs = est.rho_coeffs
         t1 = time.perf_counter()
         out = self._control(est) if est.tracked else None
-        suspect = "" if out is None else self.guard.check(out.error)
+        # the guard's premise (the camera moves at most a period of the servo's twist between frames) holds only
+        # while the servo drives or holds it: outside, the first frame after a start is trusted
+        if not self.machine.servo_active:
+            self.guard.reset()
+        suspect = self.guard.check(out.error) if out is not None and self.machine.servo_active else ""
         self._suspect = bool(suspect)
         if suspect:
             out = None
             est.message = f"{est.message}; {suspect}".strip("; ")
         error = out.error if out is not None else ZERO6
         norm = out.error_norm if out is not None else float("nan")
-        state = self.machine.on_frame(FrameOutcome(out is not None, self._settled_norm(out)))
+        state = self.machine.on_frame(FrameOutcome(out is not None, norm, self._settled_norm(out)))
         twist = out.twist if (out is not None and self.machine.moves) else ZERO6
         t2 = time.perf_counter()
         return StepResult(
@@ -195,7 +199,8 @@ class ServoPipeline:
 
     def _settled_norm(self, out: ControlOutput | None) -> float:
         """Norm of the mean control error over the last `settle_frames` tracked frames (nan for an untracked
-        frame, which also empties the window): what the stop and resume decisions compare."""
+        frame, which also empties the window): what the stop decision compares (a resume compares the frame's own
+        norm with `resume_factor ×` the threshold, so a disturbance is answered at once)."""
         if out is None:
             self._recent.clear()
             return float("nan")

@@ -29,10 +29,12 @@ class TransitionError(ValueError):
 
 @dataclass
 class FrameOutcome:
-    """What one registered frame says: registration quality and the control-error norm."""
+    """What one registered frame says: registration quality, the control-error norm of this frame and the one the
+    stop decision compares (the pipeline's mean over a few frames; this frame's own when not given)."""
 
     tracked: bool
     error_norm: float
+    settled_norm: float | None = None
 
 
 @dataclass
@@ -96,7 +98,8 @@ class StateMachine:
         """Update the state from one frame's registration outcome (only while the servo is active)."""
         if not self.servo_active:
             return self.state
-        below = outcome.tracked and outcome.error_norm < self.stop_threshold
+        settled = outcome.error_norm if outcome.settled_norm is None else outcome.settled_norm
+        below = outcome.tracked and settled < self.stop_threshold
         self._below = self._below + 1 if below else 0
         self._tracked = self._tracked + 1 if outcome.tracked else 0
         if not outcome.tracked:
