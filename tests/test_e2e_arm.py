@@ -45,7 +45,10 @@ def test_both_laws_converge_to_the_reference_pose(law, template):
                                               "paper_images_to_convergence", "final_error_norm",
                                               "final_translation_error_mm", "final_rotation_error_deg")}))
     assert result.converged, f"{result.reason}; logs in {out / 'logs'}"
-    assert summary["final_error_norm"] < 1e-3
+    # The stop rule judges the mean control error over the last `settle_frames` frames (issue 20): one frame's norm
+    # still carries the estimation noise (1–2e-3 measured at the goal), so the last frame is held to a noise band and
+    # the pose errors below are the physical check.
+    assert summary["final_error_norm"] < 5e-3
     assert summary["final_translation_error_mm"] < MAX_TRANSLATION_MM, summary
     assert summary["final_rotation_error_deg"] < MAX_ROTATION_DEG, summary
     assert summary["initial_translation_error_mm"] > 250.0  # it really started at the paper's displacement
