@@ -1,15 +1,6 @@
-"""Accuracy of the general registration along the paper's synthetic trajectory (saddle, 200×150 ROI), measured as
-`tests/test_general_registration.py::test_paper_trajectory_from_a_cold_start` does (cold start on image 0, then
-the same images tracked), for several ways of forming the frames: the warp's RMS error against the true warp over
-the ROI (px), the error of the control error (16) from the estimate, absolute and relative to the criterion's
-tolerance max(1 % of its norm, 1e-4), and the shape error of the estimated ρ* (`evaluation.general_accuracy`).
-
-Renders: `point` (`sim.freeflyer.render_view`: one ray per pixel centre), `box:K` (`render_camera` with K×K rays per
-pixel averaged, no optical blur), `camera:S` (`render_camera`, 4×4 rays per pixel, Gaussian optical blur of S px)
-and `texture:S` (as `box:4`, the texture blurred by a Gaussian of S texels: a blur carried by the surface, the same
-in every frame once warped, where the optical blur of `camera:S` is the same in every *image* and so differs between
-two frames by the warp's local distortion); a `/bspline` suffix registers with `GeneralConfig(interpolation="bspline")`
-(Keys by default).
+"""Accuracy of the general registration along the paper's synthetic trajectory (saddle, 200×150 ROI), for several
+ways of forming the frames: per render, the warp's RMS error, the control error's error relative to its tolerance and
+the ρ* shape error, as `evaluation.general_accuracy.measure` computes them (its docstring defines the render specs).
 
 Run: `.venv/bin/python benchmarks/general_accuracy.py [--renders point box:4/bspline camera:0.7/bspline] [--json]`
 """
