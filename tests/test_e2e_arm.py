@@ -31,7 +31,10 @@ MAX_ROTATION_DEG = 0.3
 @pytest.mark.slow
 @pytest.mark.parametrize(("law", "template"), [
     ("ddvs", (70, 70)),
-    ("dvs_reduced", (70, 70)),
+    pytest.param("dvs_reduced", (70, 70), marks=pytest.mark.xfail(strict=True, reason=(
+        "known regression, issue 20 open: with the service defaults of issue 20 (3x3 gain grid, Tukey, stop on the "
+        "mean error over 10 frames) the reduced DVS error (13) meets its 1e-3 threshold 5.1 mm / 0.46 deg from "
+        "the goal (842 images, lockstep, deterministic); before them it stopped at 1.8-2.1 mm"))),
     ("ddvs", (200, 150)),
 ])
 def test_both_laws_converge_to_the_reference_pose(law, template):
