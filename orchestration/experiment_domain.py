@@ -56,6 +56,7 @@ from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from ddvs_service.service.config import ControlSettings, RegistrationSettings
 from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
+from orchestration.journal import run_journalled
 from sim.freeflyer import Appearance, FreeFlyer, render_view
 from sim.surfaces import Plane, Surface, paper_saddle
 from sim.textures import load_texture
@@ -274,34 +275,16 @@ def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool 
     size about equally). With `out_dir`, each trial is appended
     to `trials.jsonl` there as it ends, and trials already in that file are not run again (resume; the sizes,
     trials, targets and laws may change, every other setting must be the same)."""
-    done: dict[tuple[str, str, float, int], Trial] = {}
     journal = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         journal = out_dir / "trials.jsonl"
         _check_resumable(settings, out_dir / "settings.json")
         (out_dir / "settings.json").write_text(json.dumps(asdict(settings), indent=2))
-        if journal.exists():
-            for line in journal.read_text().splitlines():
-                trial = Trial(**json.loads(line))
-                done[(trial.target, trial.law, trial.size, trial.trial)] = trial
-    trials: list[Trial] = []
-    for k in range(settings.trials):
-        for size in settings.sizes:
-            for target in settings.targets:
-                for law in settings.laws:
-                    key = (target, law, float(size), k)
-                    if key in done:
-                        trials.append(done[key])
-                        continue
-                    trial = run_trial(target, law, size, k, settings)
-                    trials.append(trial)
-                    if journal is not None:
-                        with open(journal, "a", encoding="utf-8") as f:
-                            f.write(json.dumps(asdict(trial)) + "\n")
-                    if log:
-                        print(json.dumps(asdict(trial)), flush=True)
-    return trials
+    keys = [(target, law, float(size), k) for k in range(settings.trials) for size in settings.sizes
+            for target in settings.targets for law in settings.laws]
+    return run_journalled(keys, lambda key: run_trial(*key, settings), Trial,
+                          lambda t: (t.target, t.law, t.size, t.trial), journal, asdict if log else None)
 
 
 def _check_resumable(settings: DomainSettings, path: Path) -> None:

@@ -45,6 +45,7 @@ from ddvs_service.service.pipeline import ServoPipeline
 from ddvs_service.service.state import ServoState
 from orchestration.experiment_domain import DomainSettings, trial_start
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_R, PAPER_ROI_SIZE, PAPER_T
+from orchestration.journal import run_journalled
 from sim.conditions import (
     Condition,
     Dimming,
@@ -293,33 +294,19 @@ def _project(G: F64, e: F64, rho: float, p: tuple[float, float]) -> F64:
 def run_matrix(settings: RobustnessSettings, out_dir: Path | None = None, log: bool = False) -> list[Run]:
     """Every run of the matrix (condition → start → target → law); with `out_dir`, each run is appended to
     `runs.jsonl` there (traces included) and runs already journalled are not run again."""
-    done: dict[tuple[str, str, str, str], Run] = {}
     journal = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         journal = out_dir / "runs.jsonl"
-        if journal.exists():
-            for line in journal.read_text().splitlines():
-                run = Run(**json.loads(line))
-                done[(run.target, run.law, run.start, run.condition)] = run
-    runs = []
-    for condition in settings.conditions:
-        for start in settings.starts:
-            for target in settings.targets:
-                for law in settings.laws:
-                    key = (target, law, start, condition)
-                    if key in done:
-                        runs.append(done[key])
-                        continue
-                    run = run_one(target, law, start, condition, settings)
-                    runs.append(run)
-                    if journal is not None:
-                        with open(journal, "a", encoding="utf-8") as f:
-                            f.write(json.dumps(asdict(run)) + "\n")
-                    if log:
-                        print(json.dumps({k: v for k, v in asdict(run).items() if not isinstance(v, list)}),
-                              flush=True)
-    return runs
+    keys = [(target, law, start, condition) for condition in settings.conditions for start in settings.starts
+            for target in settings.targets for law in settings.laws]
+    return run_journalled(keys, lambda key: run_one(*key, settings), Run,
+                          lambda r: (r.target, r.law, r.start, r.condition), journal, _summary if log else None)
+
+
+def _summary(run: Run) -> dict[str, object]:
+    """A run's fields without its per-frame traces (one log line)."""
+    return {k: v for k, v in asdict(run).items() if not isinstance(v, list)}
 
 
 def summary_rows(runs: list[Run]) -> list[dict[str, object]]:
