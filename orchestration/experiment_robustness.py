@@ -33,6 +33,7 @@ from collections import deque
 from dataclasses import asdict, dataclass, field
 from functools import cache
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,10 +56,12 @@ from sim.conditions import (
     MotionBlur,
     Noise,
     Occluder,
+    Roi,
     Specular,
     apply,
 )
 from sim.freeflyer import FreeFlyer, render_camera
+from sim.ground_truth import GroundTruth
 from sim.surfaces import Plane, Surface, paper_saddle
 from sim.textures import load_texture
 
@@ -210,47 +213,108 @@ def service_config(target: Target, told: Intrinsics, overrides: dict) -> Service
     return config.merged(overrides) if overrides else config
 
 
+class Plant(Protocol):
+    """A plant the matrix closes the loop on (`FreeFlyerPlant` here; the SAPIEN arm's in
+    `orchestration.experiment_robustness_arm`): `index` the frame index (dropped frames included), `image()` the
+    frame now before the condition's transforms (float grey levels), `truth()` the ground truth of the current pose
+    (`sim.ground_truth`), `T_cur_ref()` the current camera pose in the reference camera frame, `distance_m()` from
+    the camera to the target centre (m), `move(twist)` one period of the body twist [v; ω] (m/s, rad/s, camera
+    frame)."""
+
+    @property
+    def index(self) -> int: ...
+
+    def image(self) -> NDArray[np.float32]: ...
+
+    def truth(self) -> GroundTruth: ...
+
+    def T_cur_ref(self) -> F64: ...
+
+    def distance_m(self) -> float: ...
+
+    def move(self, twist: F64) -> None: ...
+
+
+class FreeFlyerPlant:
+    """The free-flying camera of `target` from `start`, frames rendered anti-aliased (module docstring)."""
+
+    def __init__(self, target: Target, start: str, p_star: tuple[float, float]) -> None:
+        self.target = target
+        self.flyer = FreeFlyer(target.surface, target.camera, np.eye(4), start_pose(target, start), DT, p_star=p_star)
+
+    @property
+    def index(self) -> int:
+        return self.flyer.index
+
+    def image(self) -> NDArray[np.float32]:
+        return render_camera(self.target.surface, _texture(), self.target.camera, self.flyer.T_world_cam,
+                             oversample=OVERSAMPLE)
+
+    def truth(self) -> GroundTruth:
+        return self.flyer.observe(render=False).truth
+
+    def T_cur_ref(self) -> F64:
+        return pose_inv(self.flyer.T_world_cam)
+
+    def distance_m(self) -> float:
+        return float(np.linalg.norm(self.flyer.T_world_cam[:3, 3] - self.target.surface.T_world_surface[:3, 3]))
+
+    def move(self, twist: F64) -> None:
+        self.flyer.move(twist)
+
+
+def told_intrinsics(camera: Intrinsics, condition: RobustnessCondition) -> Intrinsics:
+    """The intrinsics the service is told under `condition` (focal lengths scaled, principal point shifted)."""
+    return Intrinsics(camera.fx * condition.focal_factor, camera.fy * condition.focal_factor,
+                      camera.cx + condition.principal_offset_px, camera.cy + condition.principal_offset_px,
+                      camera.width, camera.height)
+
+
 def run_one(target_name: str, law: str, start: str, condition_name: str, settings: RobustnessSettings) -> Run:
     """Servo from `start` under `condition_name` until CONVERGED, the budget or the camera leaves the volume."""
     target = make_target(target_name)
     condition = CONDITIONS[condition_name]
-    cam = target.camera
-    told = Intrinsics(cam.fx * condition.focal_factor, cam.fy * condition.focal_factor,
-                      cam.cx + condition.principal_offset_px, cam.cy + condition.principal_offset_px,
-                      cam.width, cam.height)
+    told = told_intrinsics(target.camera, condition)
     config = service_config(target, told, {"control": {"law": LAW_NAMES[law]}, **settings.overrides})
     pipeline = ServoPipeline(config, told)
-    texture = _texture()
-    reference = render_camera(target.surface, texture, cam, np.eye(4), oversample=OVERSAMPLE)
+    reference = render_camera(target.surface, _texture(), target.camera, np.eye(4), oversample=OVERSAMPLE)
     roi = pipeline.set_reference(np.clip(np.rint(reference), 0, 255).astype(np.uint8))
+    plant = FreeFlyerPlant(target, start, pipeline.control_px)
+    return servo(Run(target_name, law, start, condition_name, "budget", 0, np.nan, np.nan, False, 0, 0, 0, ""),
+                 plant, pipeline, roi, condition, settings)
+
+
+def servo(run: Run, plant: Plant, pipeline: ServoPipeline, roi: Roi, condition: RobustnessCondition,
+          settings: RobustnessSettings) -> Run:
+    """Close the loop on `plant` through `pipeline` (its reference set, template box `roi`) under `condition`
+    until CONVERGED, the budget, `LOST_LIMIT_FRAMES` LOST frames in a row or the camera leaves the volume; fills
+    `run` (traces, integrity measures, verdict) and returns it."""
+    config, told = pipeline.config, pipeline.intrinsics
+    assert told is not None, "the pipeline needs the told intrinsics"
     pipeline.machine.start()
     p_star = pipeline.control_px
-    truth_law = ControlLaw(ControlConfig(LAW_NAMES[law], gains=config.control.gains, stop_threshold=0.0), told)
-    plant = FreeFlyer(target.surface, cam, np.eye(4), start_pose(target, start), DT, p_star=p_star)
+    truth_law = ControlLaw(ControlConfig(config.control.law, gains=config.control.gains, stop_threshold=0.0), told)
     rng = np.random.default_rng([7, condition.latency_frames, round(1000 * condition.drop_fraction)])
     pending: deque[F64] = deque([np.zeros(6)] * condition.latency_frames)
     applied = np.zeros(6)
-    run = Run(target_name, law, start, condition_name, "budget", 0, np.nan, np.nan, False, 0, 0, 0,
-              f"no CONVERGED in {settings.max_images} images")
+    run.outcome, run.note = "budget", f"no CONVERGED in {settings.max_images} images"
     limits = np.array([config.control.max_linear, config.control.max_angular])
     previous_px: F64 | None = None
     lost_run = 0
     for _ in range(settings.max_images):
-        truth = plant.observe(render=False).truth
+        truth = plant.truth()
         px = _project(truth.G, truth.e, truth.rho, p_star)
         motion = (0.0, 0.0) if previous_px is None else (float(px[0] - previous_px[0]), float(px[1] - previous_px[1]))
         previous_px = px
         if condition.drop_fraction > 0.0 and rng.random() < condition.drop_fraction:
             plant.move(applied)  # the service never sees this frame; the robot keeps its last command
             continue
-        clean = render_camera(target.surface, texture, cam, plant.T_world_cam, oversample=OVERSAMPLE)
-        image = apply(condition.images, clean, FrameContext(plant.index, plant.index * DT, roi, motion))
+        image = apply(condition.images, plant.image(), FrameContext(plant.index, plant.index * DT, roi, motion))
         step = pipeline.step(image.astype(np.uint8))
         run.images += 1
         run.error_norms.append(step.error_norm)
         run.states.append(step.state.value)
-        T_cur_ref = pose_inv(plant.T_world_cam)
-        run.pose_errors_mm.append(1e3 * float(np.linalg.norm(T_cur_ref[:3, 3])))
+        run.pose_errors_mm.append(1e3 * float(np.linalg.norm(plant.T_cur_ref()[:3, 3])))
         if step.state == ServoState.LOST:
             run.ever_lost, run.lost_frames, lost_run = True, run.lost_frames + 1, lost_run + 1
             if lost_run >= LOST_LIMIT_FRAMES:
@@ -267,14 +331,14 @@ def run_one(target_name: str, law: str, start: str, condition_name: str, setting
         if step.state == ServoState.CONVERGED:
             run.outcome, run.note = "converged", f"CONVERGED at error norm {step.error_norm:.2e}"
             break
-        distance = float(np.linalg.norm(plant.T_world_cam[:3, 3] - target.surface.T_world_surface[:3, 3]))
+        distance = plant.distance_m()
         if not WORKING_RANGE_M[0] <= distance <= WORKING_RANGE_M[1]:
             run.outcome, run.note = "diverged", f"camera {distance:.2f} m from the target centre"
             break
         pending.append(step.twist)
         applied = pending.popleft()
         plant.move(applied)
-    T_cur_ref = pose_inv(plant.T_world_cam)
+    T_cur_ref = plant.T_cur_ref()
     run.translation_error_mm = 1e3 * float(np.linalg.norm(T_cur_ref[:3, 3]))
     run.rotation_error_deg = float(np.degrees(np.linalg.norm(so3_log(T_cur_ref[:3, :3]))))
     if run.outcome == "converged":
