@@ -61,7 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
     rp = sub.add_parser("robustness", help="the servo under coarse intrinsics, light changes, occluders, noise, blur, "
-                                           "JPEG, latency and frame loss (free-flying camera)")
+                                           "JPEG, latency and frame loss (free-flying camera or SAPIEN arm)")
+    rp.add_argument("--plant", choices=("freeflyer", "arm"), default="freeflyer",
+                    help="freeflyer (default; every condition) or arm (the SAPIEN UR5, planar target: coarse "
+                         "intrinsics, a dimming light, an occluding plate, latency, dropped frames; see "
+                         "orchestration/experiment_robustness_arm.py)")
     rp.add_argument("--targets", nargs="+", choices=("planar", "saddle"), default=["planar"],
                     help="targets (default planar)")
     rp.add_argument("--laws", nargs="+", choices=("dvs", "ddvs"), default=["ddvs"], help="laws (default ddvs)")
@@ -72,13 +76,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rp.add_argument("--max-images", type=int, default=1500, help="image budget per run (default 1500)")
     rp.add_argument("--overrides", help="service configuration changes as JSON, e.g. "
                                         "'{\"registration\": {\"robust\": \"huber\"}}'")
-    rp.add_argument("--out", type=Path, default=Path("reports/robustness"), help="output directory (resumable)")
+    rp.add_argument("--out", type=Path, help="output directory (resumable; default reports/robustness, "
+                                             "reports/robustness/arm for the arm)")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.experiment == "robustness" and args.plant == "arm":
+        from orchestration.experiment_robustness_arm import run_arm_robustness_command
+
+        args.out = args.out or Path("reports/robustness/arm")
+        return run_arm_robustness_command(args)
     if args.experiment == "robustness":
         from orchestration.experiment_robustness import run_robustness_command
 
+        args.out = args.out or Path("reports/robustness")
         return run_robustness_command(args)
     if args.experiment == "paper":
         from orchestration.experiment_paper import run_paper_command

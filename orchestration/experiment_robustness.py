@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from functools import cache
 from pathlib import Path
@@ -355,16 +356,18 @@ def _project(G: F64, e: F64, rho: float, p: tuple[float, float]) -> F64:
     return q[:2] / q[2]
 
 
-def run_matrix(settings: RobustnessSettings, out_dir: Path | None = None, log: bool = False) -> list[Run]:
-    """Every run of the matrix (condition → start → target → law); with `out_dir`, each run is appended to
-    `runs.jsonl` there (traces included) and runs already journalled are not run again."""
+def run_matrix(settings: RobustnessSettings, out_dir: Path | None = None, log: bool = False,
+               one: Callable[[str, str, str, str, RobustnessSettings], Run] = run_one) -> list[Run]:
+    """Every run of the matrix (condition → start → target → law), each `one(target, law, start, condition,
+    settings)` (default the free-flyer's `run_one`); with `out_dir`, each run is appended to `runs.jsonl` there
+    (traces included) and runs already journalled are not run again."""
     journal = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         journal = out_dir / "runs.jsonl"
     keys = [(target, law, start, condition) for condition in settings.conditions for start in settings.starts
             for target in settings.targets for law in settings.laws]
-    return run_journalled(keys, lambda key: run_one(*key, settings), Run,
+    return run_journalled(keys, lambda key: one(*key, settings), Run,
                           lambda r: (r.target, r.law, r.start, r.condition), journal, _summary if log else None)
 
 

@@ -10,6 +10,9 @@ so `step` saturates each joint at it. SAPIEN's camera has x forward, y left, z u
 pixel edges: the component is mounted at `T_link_cam · R_cv_sapien` with `cx_sapien = cx + 0.5`, `cy_sapien = cy + 0.5`.
 Rendering uses the `trivial` shader (unlit albedo, textures loaded linear with srgb=False), ambient light only, so
 grey levels are the texture's and independent of the viewpoint; the scripted illumination change is a gain on them.
+A scene with a `light` (`LightSpec`) renders with the `minimal` shader instead, lit by that directional light only
+(no ambient), its intensity set at each frame from the simulated time, with a linear camera response (SAPIEN's
+1/2.2 encoding undone on the float picture); `occluders` (`OccluderSpec`) are render-only plates posed at each frame.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from ddvs_service.camera import Intrinsics
 from ddvs_service.kinematics import ArmKinematics, resolve_urdf
 from ddvs_service.lie import pose
-from sim.arm_scene import ArmSceneConfig, TargetSpec
+from sim.arm_scene import ArmSceneConfig, LightSpec, TargetSpec
 
 F64 = NDArray[np.float64]
 
@@ -51,10 +54,10 @@ class ArmSim:
 
     def __init__(self, config: ArmSceneConfig) -> None:
         self.config = config
-        sapien.render.set_camera_shader_dir("trivial")  # global; must precede camera creation
+        sapien.render.set_camera_shader_dir("trivial" if config.light is None else "minimal")  # global; before cameras
         scene = sapien.Scene()
         scene.set_timestep(1.0 / config.physics_hz)
-        scene.render_system.set_ambient_light([1.0, 1.0, 1.0])
+        scene.render_system.set_ambient_light([1.0, 1.0, 1.0] if config.light is None else [0.0, 0.0, 0.0])
         loader = scene.create_urdf_loader()
         loader.fix_root_link = True
         robot = loader.load(str(resolve_urdf(config.urdf)))
@@ -80,6 +83,14 @@ class ArmSim:
         self._camera = self._mount_camera(config)
         for target in config.targets:
             scene.add_entity(self._target_entity(target))
+        self._light = None if config.light is None else self._light_component(scene, config.light)
+        for occluder in config.occluders:
+            if not 0 <= occluder.target < len(config.targets):
+                raise ValueError(f"occluder target index {occluder.target} out of range: the scene has "
+                                 f"{len(config.targets)} targets")
+        self._occluders = [(spec, self._target_entity(spec.plate())) for spec in config.occluders]
+        for _, entity in self._occluders:
+            scene.add_entity(entity)
         self.scene = scene
         self.robot = robot
         self.time = 0.0
@@ -114,6 +125,28 @@ class ArmSim:
         entity.add_component(body)
         entity.set_pose(sapien.Pose(target.T_world_target.astype(np.float32)))
         return entity
+
+    @staticmethod
+    def _light_component(scene: sapien.Scene, light: LightSpec) -> sapien.render.RenderDirectionalLightComponent:
+        """A directional light entity shining along `light.direction` (SAPIEN's lights shine along their x axis)."""
+        x = np.asarray(light.direction, dtype=np.float64)
+        helper = np.array([0.0, 0.0, 1.0]) if abs(x[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        y = np.cross(helper, x)
+        y /= np.linalg.norm(y)
+        component = sapien.render.RenderDirectionalLightComponent()
+        entity = sapien.Entity()
+        entity.add_component(component)
+        entity.set_pose(sapien.Pose(pose(np.stack([x, y, np.cross(x, y)], axis=1), np.zeros(3)).astype(np.float32)))
+        scene.add_entity(entity)
+        return component
+
+    def _set_scene_time(self) -> None:
+        """Light intensity and occluder poses at the current simulated time."""
+        if self._light is not None and self.config.light is not None:
+            self._light.set_color([math.pi * self.config.light.intensity(self.time)] * 3)
+        for spec, entity in self._occluders:
+            T = self.config.targets[spec.target].T_world_target @ spec.T_target_plate_at(self.time)
+            entity.set_pose(sapien.Pose(T.astype(np.float32)))
 
     def set_joint_positions(self, q: ArrayLike) -> None:
         """Teleport the arm to `q` (joint_names order) at rest; raises outside the URDF position limits."""
@@ -165,10 +198,13 @@ class ArmSim:
 
     def render(self) -> NDArray[np.uint8]:
         """Grey uint8 image [row, col] (height × width of the intrinsics) seen by the camera now, gain applied."""
+        self._set_scene_time()
         self.scene.update_render()
         self._camera.take_picture()
-        rgba = self._camera.get_picture("Color")
-        return cv2.convertScaleAbs(rgba[..., 0], alpha=255.0 * self.illumination_gain())
+        grey = np.ascontiguousarray(self._camera.get_picture("Color")[..., 0])
+        if self._light is not None:
+            grey = np.power(grey, np.float32(2.2))  # linear response: undo the minimal shader's 1/2.2 encoding
+        return cv2.convertScaleAbs(grey, alpha=255.0 * self.illumination_gain())
 
     def place_camera(self, T_target_cam: ArrayLike, target: int = 0, seed: ArrayLike | None = None) -> F64:
         """Move the arm so that the camera is at `T_target_cam` in the frame of target `target` (IK seeded with

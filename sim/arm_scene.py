@@ -140,6 +140,63 @@ class IlluminationRamp:
 
 
 @dataclass(frozen=True)
+class LightSpec:
+    """A directional light (a SAPIEN light entity, rendered by SAPIEN's `minimal` shader) shining along `direction`
+    (world frame, normalised here), its intensity scripted by `ramp` over simulated time (None: constant 1).
+
+    Units: at intensity 1 a Lambertian surface facing the light shows its texture's grey levels (the light's
+    radiance is π · intensity, the shader's BRDF albedo/π); the camera's response is linear (the shader's 1/2.2
+    encoding is undone), so grey levels scale with the intensity and with the cosine of the incidence angle."""
+
+    direction: tuple[float, float, float]
+    ramp: IlluminationRamp | None = None
+
+    def __post_init__(self) -> None:
+        d = np.asarray(self.direction, dtype=np.float64)
+        if d.shape != (3,) or not np.linalg.norm(d) > 0.0:
+            raise ValueError(f"light direction must be a non-zero 3-vector (world frame), got {self.direction}")
+        object.__setattr__(self, "direction", tuple(float(v) for v in d / np.linalg.norm(d)))
+
+    def intensity(self, t: float) -> float:
+        return 1.0 if self.ramp is None else self.ramp.at(t)
+
+
+@dataclass(frozen=True)
+class OccluderSpec:
+    """A flat textured plate (`width` × `height` m, `texture` image path or procedural `seed`) moved into view: in
+    the frame of target `target` it rests at `T_target_plate` (plate frame as a target frame: z away from the viewer)
+    translated by `offset` (m, target frame) until `t_start`, slides linearly to `T_target_plate` by `t_end`, then
+    stays (seconds of simulated time). A render-only SAPIEN entity, lit as the targets are."""
+
+    width: float
+    height: float
+    T_target_plate: F64
+    offset: tuple[float, float, float]
+    t_start: float
+    t_end: float
+    target: int = 0
+    texture: str | None = None
+    seed: int = 1
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0 or self.t_end < self.t_start:
+            raise ValueError(f"occluder needs width, height > 0 and t_end ≥ t_start, got {self.width}, {self.height}, "
+                             f"{self.t_start}, {self.t_end}")
+
+    def plate(self) -> TargetSpec:
+        """The plate as a poster `TargetSpec` (its pose the identity: `T_target_plate_at` places it)."""
+        return TargetSpec("poster", self.width, self.height, np.eye(4), texture=self.texture, seed=self.seed)
+
+    def T_target_plate_at(self, t: float) -> F64:
+        """The plate's pose in the target frame at simulated time `t` (s)."""
+        span = self.t_end - self.t_start
+        s = 1.0 if t >= self.t_end else 0.0 if t <= self.t_start or span <= 0.0 else (t - self.t_start) / span
+        T = np.asarray(self.T_target_plate, dtype=np.float64).copy()
+        T[:3, 3] += (1.0 - s) * np.asarray(self.offset, dtype=np.float64)
+        return T
+
+
+@dataclass(frozen=True)
 class CameraSpec:
     """Camera intrinsics (OpenCV, pixel centres), clipping planes (metres) and mount `T_link_cam` on `link`."""
 
@@ -163,7 +220,9 @@ class StartPose:
 @dataclass(frozen=True)
 class ArmSceneConfig:
     """Whole scene: robot URDF (plain path or `package://`), its home joint positions (IK seed), the camera, the
-    targets, physics rate (Hz), optional illumination ramp, optional start pose, whether robot meshes are drawn."""
+    targets, physics rate (Hz), optional illumination ramp (a gain on the rendered grey levels), optional start pose,
+    whether robot meshes are drawn, an optional directional `light` (None: ambient light only, unlit albedo) and
+    `occluders` moved into view."""
 
     urdf: str
     home: tuple[float, ...]
@@ -173,6 +232,8 @@ class ArmSceneConfig:
     illumination: IlluminationRamp | None = None
     start: StartPose | None = None
     show_robot: bool = True
+    light: LightSpec | None = None
+    occluders: tuple[OccluderSpec, ...] = ()
 
 
 def _intrinsics(spec: dict) -> Intrinsics:
@@ -202,6 +263,7 @@ def scene_config_from_dict(config: dict) -> ArmSceneConfig:
     )
     ramp = config.get("illumination")
     start = config.get("start")
+    light = config.get("light")
     return ArmSceneConfig(
         urdf=robot["urdf"],
         home=tuple(float(v) for v in robot["home"]),
@@ -215,6 +277,19 @@ def scene_config_from_dict(config: dict) -> ArmSceneConfig:
         if start
         else None,
         show_robot=bool(config.get("show_robot", True)),
+        light=LightSpec(tuple(light["direction"]), IlluminationRamp(**light["ramp"]) if light.get("ramp") else None)
+        if light
+        else None,
+        occluders=tuple(_occluder(o) for o in config.get("occluders", [])),
+    )
+
+
+def _occluder(spec: dict) -> OccluderSpec:
+    return OccluderSpec(
+        width=float(spec["width"]), height=float(spec["height"]), T_target_plate=pose_from_dict(spec.get("pose", {})),
+        offset=tuple(float(v) for v in spec.get("offset", (0.0, 0.0, 0.0))), t_start=float(spec["t_start"]),
+        t_end=float(spec["t_end"]), target=int(spec.get("target", 0)), texture=spec.get("texture"),
+        seed=int(spec.get("seed", 1)),
     )
 
 
