@@ -103,9 +103,14 @@ class ArmSim:
         return self.config.camera.intrinsics
 
     def _mount_camera(self, config: ArmSceneConfig) -> sapien.render.RenderCameraComponent:
+        """SAPIEN camera of the sub-pixel grid: `oversample` (s) times the resolution and the focal lengths; with the
+        principal point counted from pixel edges, output pixel u covers [u, u + 1] and its sub-pixels s·u … s·u + s − 1,
+        so the edge-based principal point scales by s too."""
         k, spec = config.camera.intrinsics, config.camera
-        camera = sapien.render.RenderCameraComponent(k.width, k.height)
-        camera.set_perspective_parameters(spec.near, spec.far, k.fx, k.fy, k.cx + 0.5, k.cy + 0.5, k.skew)
+        s = spec.oversample
+        camera = sapien.render.RenderCameraComponent(s * k.width, s * k.height)
+        camera.set_perspective_parameters(spec.near, spec.far, s * k.fx, s * k.fy, s * (k.cx + 0.5), s * (k.cy + 0.5),
+                                          s * k.skew)
         T = spec.T_link_cam @ pose(R_CV_SAPIEN, np.zeros(3))
         camera.set_local_pose(sapien.Pose(T.astype(np.float32)))
         self._camera_link.entity.add_component(camera)
@@ -197,13 +202,24 @@ class ArmSim:
         return 1.0 if ramp is None else ramp.at(self.time)
 
     def render(self) -> NDArray[np.uint8]:
-        """Grey uint8 image [row, col] (height × width of the intrinsics) seen by the camera now, gain applied."""
+        """Grey uint8 image [row, col] (height × width of the intrinsics) seen by the camera now, gain applied.
+
+        Image formation of `CameraSpec`: the sub-pixel render, blurred by the optical Gaussian (`psf_sigma` output
+        pixels, mirrored border), averaged over each pixel's `oversample × oversample` sub-pixels (`cv2.INTER_AREA`
+        at an integer factor is the block mean), then the illumination gain, rounded and saturated to 8 bits."""
         self._set_scene_time()
         self.scene.update_render()
         self._camera.take_picture()
         grey = np.ascontiguousarray(self._camera.get_picture("Color")[..., 0])
         if self._light is not None:
             grey = np.power(grey, np.float32(2.2))  # linear response: undo the minimal shader's 1/2.2 encoding
+        spec = self.config.camera
+        if spec.psf_sigma > 0.0:
+            sigma = spec.psf_sigma * spec.oversample
+            grey = cv2.GaussianBlur(grey, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        if spec.oversample > 1:
+            k = spec.intrinsics
+            grey = cv2.resize(grey, (k.width, k.height), interpolation=cv2.INTER_AREA)
         return cv2.convertScaleAbs(grey, alpha=255.0 * self.illumination_gain())
 
     def place_camera(self, T_target_cam: ArrayLike, target: int = 0, seed: ArrayLike | None = None) -> F64:

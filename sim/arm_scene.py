@@ -198,13 +198,27 @@ class OccluderSpec:
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """Camera intrinsics (OpenCV, pixel centres), clipping planes (metres) and mount `T_link_cam` on `link`."""
+    """Camera intrinsics (OpenCV, pixel centres), clipping planes (metres) and mount `T_link_cam` on `link`.
+
+    Image formation (`sim/arm.py` `ArmSim.render`): `oversample` 1 point-samples the scene at each pixel centre
+    (SAPIEN's raster); `oversample` k > 1 renders k×k sub-pixels per pixel and averages them (the pixel's area, as a
+    sensor integrates), after a Gaussian optical blur of `psf_sigma` output pixels (0: none)."""
 
     intrinsics: Intrinsics
     link: str
     T_link_cam: F64
     near: float = 0.02
     far: float = 10.0
+    oversample: int = 1
+    psf_sigma: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.oversample, int) and self.oversample >= 1):
+            raise ValueError(f"camera oversample must be a positive number of sub-pixels per side, got "
+                             f"{self.oversample!r}")
+        if not self.psf_sigma >= 0.0:
+            raise ValueError(f"camera psf_sigma must be a non-negative standard deviation in pixels, got "
+                             f"{self.psf_sigma}")
 
 
 @dataclass(frozen=True)
@@ -252,6 +266,8 @@ def scene_config_from_dict(config: dict) -> ArmSceneConfig:
         T_link_cam=pose_from_dict(robot.get("mount", {})),
         near=float(cam.get("near", 0.02)),
         far=float(cam.get("far", 10.0)),
+        oversample=int(cam.get("oversample", 1)),
+        psf_sigma=float(cam.get("psf_sigma", 0.0)),
     )
     targets = tuple(
         TargetSpec(

@@ -26,6 +26,13 @@ def sim(config):
     return ArmSim(config)
 
 
+@pytest.fixture(scope="module")
+def point_sim(config):
+    """The same scene with SAPIEN's point-sampled frames (one ray per pixel centre): the projection checks compare
+    them with the texture sampled at projected points, which the shipped camera's pixel-area integration smooths."""
+    return ArmSim(dataclasses.replace(config, camera=dataclasses.replace(config.camera, oversample=1, psf_sigma=0.0)))
+
+
 def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Image values at pixel-centre coordinates (u, v)."""
     return cv2.remap(image.astype(np.float32), u.astype(np.float32)[None], v.astype(np.float32)[None],
@@ -73,16 +80,16 @@ def test_reference_pose_is_reached_and_matches_sapien_camera(sim, config):
 
 
 @pytest.mark.parametrize("where", ["reference", "start"])
-def test_poster_projects_with_opencv_intrinsics(sim, config, where):
+def test_poster_projects_with_opencv_intrinsics(point_sim, config, where):
     """The rendered poster equals the texture mapped through K and the camera pose: axes, UV orientation and the
     half-pixel principal point are right (a 0.5 px shift at least doubles the error)."""
     start = config.start
     if where == "reference":
-        sim.place_camera(start.T_target_ref, start.target)
+        point_sim.place_camera(start.T_target_ref, start.target)
     else:
-        sim.place_start()
-    error = _surface_error(sim, config.targets[0])
-    shifted = _surface_error(sim, config.targets[0], pixel_offset=0.5)
+        point_sim.place_start()
+    error = _surface_error(point_sim, config.targets[0])
+    shifted = _surface_error(point_sim, config.targets[0], pixel_offset=0.5)
     assert error < 2.5, f"rendered vs projected texture: mean abs error {error:.2f} grey levels"
     assert shifted > 2.0 * error
 
@@ -128,3 +135,18 @@ def test_start_pose_is_the_papers_displacement(sim, config):
     T_ref_init = pose_inv(config.start.T_target_ref) @ T_target_cam
     np.testing.assert_allclose(T_ref_init[:3, 3], [0.13, -0.23, -0.08], atol=1e-5)
     np.testing.assert_allclose(np.rad2deg(so3_log(T_ref_init[:3, :3])), [-20.3, 2.17, 14.59], atol=1e-3)
+
+
+def test_antialiased_frames_keep_the_geometry_of_point_sampled_ones(sim, point_sim, config):
+    """The shipped camera renders 2×2 sub-pixels per pixel with a 0.5 px optical blur: its frames are the
+    point-sampled ones smoothed, not shifted (the sub-pixel grid keeps SAPIEN's edge-based principal point)."""
+    assert (config.camera.oversample, config.camera.psf_sigma) == (2, 0.5)
+    for plant in (sim, point_sim):
+        plant.place_camera(config.start.T_target_ref, config.start.target)
+    smooth, raw = sim.render().astype(np.float32), point_sim.render().astype(np.float32)
+    (du, dv), _ = cv2.phaseCorrelate(raw, smooth)
+    assert abs(du) < 0.02 and abs(dv) < 0.02, (du, dv)
+    laplacian = [float(np.abs(cv2.Laplacian(image, cv2.CV_32F)).mean()) for image in (smooth, raw)]
+    assert laplacian[0] < 0.9 * laplacian[1], laplacian  # the fine detail a pixel's area and the optics integrate
+    with pytest.raises(ValueError, match="oversample"):
+        dataclasses.replace(config.camera, oversample=0)
