@@ -10,6 +10,7 @@ Contract: the numpy arrays given to `Prepared` must stay C-contiguous, keep thei
 holds references to them); their contents may change between launches, and the kernel sees the current contents.
 Template arguments are compile-time constants fixed at preparation. On a non-CPU backend external arrays are copied
 to and from the device by the regular launch path, so there `Prepared` falls back to a plain call per launch.
+Each launch is a checkpoint of `kernels.exclusive.GATE` (a background holder hands the lock to a waiting frame there).
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 from taichi.types import template
+
+from kernels.exclusive import GATE
 
 
 class Prepared:
@@ -58,4 +61,5 @@ class Prepared:
 
     def __call__(self) -> None:
         """Launch the kernel on the bound buffers' current contents."""
+        GATE.checkpoint()
         self._launch()

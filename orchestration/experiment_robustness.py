@@ -277,7 +277,7 @@ def run_one(target_name: str, law: str, start: str, condition_name: str, setting
     condition = CONDITIONS[condition_name]
     told = told_intrinsics(target.camera, condition)
     config = service_config(target, told, {"control": {"law": LAW_NAMES[law]}, **settings.overrides})
-    pipeline = ServoPipeline(config, told)
+    pipeline = ServoPipeline(config, told, background_reacquisition=False)  # lockstep: the plant waits for it
     reference = render_camera(target.surface, _texture(), target.camera, np.eye(4), oversample=OVERSAMPLE)
     roi = pipeline.set_reference(np.clip(np.rint(reference), 0, 255).astype(np.uint8))
     plant = FreeFlyerPlant(target, start, pipeline.control_px)

@@ -168,7 +168,7 @@ def run_arm_one(target: str, law: str, start: str, condition_name: str, settings
     sim = ArmSim(config)
     sim.place_camera(config.start.T_target_ref, config.start.target)
     T_world_ref = sim.camera_pose()
-    pipeline = ServoPipeline(service, told)
+    pipeline = ServoPipeline(service, told, background_reacquisition=False)  # lockstep: the plant waits for it
     roi = pipeline.set_reference(sim.render())  # at t = 0: full light, the occluder out of view
     sim.place_start()
     plant = ArmPlant(sim, load_bridge(BRIDGE), T_world_ref, arm_target.surface, pipeline.control_px)

@@ -1,6 +1,9 @@
-"""One re-acquisition path for both models (`registration.reacquisition`), on the tracker's own prepared reference."""
+"""One re-acquisition path for both models (`registration.reacquisition`), on the tracker's own prepared reference;
+in the service, beside the servo loop (`service.reacquirer`)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +16,11 @@ from ddvs_service.registration.global_init import GlobalInitConfig, PlanarRefine
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.registration.warp_distance import warp_rms
+from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.pipeline import ServoPipeline
+from ddvs_service.service.reacquirer import BackgroundReacquisition
+from ddvs_service.service.state import ServoState
+from kernels.exclusive import GATE
 from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene
 from sim.textures import TEXTURES, load_texture
 
@@ -79,3 +87,82 @@ def test_service_global_init_setting_is_honoured_by_both_models(scene: PlanarSce
     off = estimator(reference, ROI, RegistrationSettings(model=model, global_init=False)).estimate(current,
                                                                                                  (159.5, 119.5))
     assert not (off.tracked and warp_rms(off.G, H, ROI) < 1.0)
+
+
+def servo_pipeline(roi: tuple[int, int, int, int] = ROI, background: bool = True) -> ServoPipeline:
+    """The service's per-frame code with the shipped configuration on the test camera."""
+    shipped = Path(__file__).resolve().parents[1] / "configs" / "serve" / "ur5_poster.json"
+    config = ServiceConfig.from_file(shipped).merged({
+        "intrinsics": {"fx": CAM.fx, "fy": CAM.fy, "cx": CAM.cx, "cy": CAM.cy, "width": CAM.width,
+                       "height": CAM.height},
+        "registration": {"roi": list(roi)}})
+    return ServoPipeline(config, CAM, background_reacquisition=background)
+
+
+def test_lost_frames_are_answered_while_the_worker_searches_then_servoing_resumes(scene: PlanarScene) -> None:
+    """The view turns 40° (beyond the tracker's reach): every frame is answered LOST with a zero twist while the
+    worker searches — here held off the Taichi gate by this thread, so the count does not depend on timing — then
+    the worker's pose is adopted only once the tracker registers a newer frame from it, and the servo moves again
+    only after the error guard saw the jumped error agree for `rebase_frames` frames."""
+    servo = servo_pipeline()
+    reference = np.clip(np.rint(scene.render()), 0, 255).astype(np.uint8)
+    servo.set_reference(reference, ROI, G0=np.eye(3))
+    servo.machine.start()
+    for _ in range(3):
+        assert servo.step(reference).state in (ServoState.SERVOING, ServoState.CONVERGED)
+    worker = servo.reacquisition
+    assert isinstance(worker, BackgroundReacquisition)
+    H = rotated(scene, 40.0)
+    moved = np.clip(np.rint(scene.render(H)), 0, 255).astype(np.uint8)
+    try:
+        step = servo.step(moved)  # the tracker fails: LOST; the next frame needs re-acquisition
+        assert step.state == ServoState.LOST and not np.any(step.twist), step
+        with GATE.hold():  # the worker cannot search: it waits at the gate with the newest frame
+            for k in range(10):
+                step = servo.step(moved)
+                assert step.state == ServoState.LOST and not np.any(step.twist), step
+                assert "searching in the background" in step.message, step.message
+                assert worker.busy, k
+        assert worker.searches == 0
+        assert worker.wait_idle(300.0), "the worker did not finish its search"
+        adopted_at, servoing_at = None, None
+        for k in range(60):
+            step = servo.step(moved)
+            if adopted_at is None and step.message.startswith("global initialisation: ok"):
+                adopted_at = k
+                assert servo.G is not None and warp_rms(servo.G, H, ROI) < 0.1
+            if step.state == ServoState.SERVOING:
+                servoing_at = k
+                break
+            assert not np.any(step.twist), step
+            worker.wait_idle(300.0)
+        assert worker.searches >= 1 and adopted_at is not None
+        assert servoing_at is not None and servoing_at - adopted_at >= servo.guard.rebase_frames - 1
+        assert np.any(step.twist) and servo.G is not None and warp_rms(servo.G, H, ROI) < 0.1
+    finally:
+        servo.close()
+
+
+def test_a_tracked_frame_after_a_lost_one_needs_no_search(scene: PlanarScene) -> None:
+    """The target is hidden for a frame (an unrelated image: LOST) and comes back where it was: the next frame is
+    re-acquired by tracking from the last good estimate, at once, and the search started for the hidden frame is
+    cancelled."""
+    servo = servo_pipeline()
+    reference = np.clip(np.rint(scene.render()), 0, 255).astype(np.uint8)
+    servo.set_reference(reference, ROI, G0=np.eye(3))
+    servo.machine.start()
+    servo.step(reference)
+    H = scene.homography(np.eye(3), np.array([0.002, 0.0, 0.0]))
+    near = np.clip(np.rint(scene.render(H)), 0, 255).astype(np.uint8)
+    hidden = np.random.default_rng(0).integers(0, 256, reference.shape, dtype=np.uint8)
+    try:
+        assert servo.step(hidden).state == ServoState.LOST
+        worker = servo.reacquisition
+        assert worker is not None
+        worker.wait_idle(300.0)  # the hidden frame's search ends (LOST); its result is what the next call sees
+        step = servo.step(near)
+        assert step.message.startswith("re-acquired by tracking from the last good estimate"), step.message
+        assert servo.G is not None and warp_rms(servo.G, H, ROI) < 0.05
+        assert not worker.busy
+    finally:
+        servo.close()

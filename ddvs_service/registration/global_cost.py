@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from kernels.exclusive import GATE
 from kernels.global_warp import sample_points, warp_homographies
 
 F32 = NDArray[np.float32]
@@ -42,6 +43,7 @@ def sample_through(image: F32, H: F64, shape: tuple[int, int], offset: tuple[flo
     Hs = np.ascontiguousarray(Hs.reshape(-1, 9))
     out = np.empty((len(Hs), *shape), np.float32)
     valid = np.empty_like(out)
+    GATE.checkpoint()  # a frame waiting for Taichi goes first (`kernels.exclusive`)
     warp_homographies(np.ascontiguousarray(image, np.float32), out, valid, Hs, float(offset[0]), float(offset[1]))
     return (out[0], valid[0]) if single else (out, valid)
 
@@ -52,6 +54,7 @@ def sample_at(image: F32, points: F64, shape: tuple[int, int]) -> tuple[F32, F32
     xy = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 2)
     out = np.empty(len(xy), np.float32)
     valid = np.empty_like(out)
+    GATE.checkpoint()
     sample_points(np.ascontiguousarray(image, np.float32), xy, out, valid)
     return out.reshape(shape), valid.reshape(shape)
 

@@ -62,6 +62,7 @@ from ddvs_service.registration.global_screen import BatchScreen
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.warp_distance import rms_distance, roi_grid, roi_samples, warp_rms
 from kernels import backend
+from kernels.exclusive import GATE
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -313,6 +314,7 @@ class GlobalInitializer:
         for index, stage_hypotheses in enumerate(stages):
             if index == len(stages) - 1 and (result.status == "OK" or cfg.tilt_seeds == 0):
                 break  # stage 3 only rescues a search that stages 1–2 lost
+            GATE.checkpoint()  # between stages, a frame waiting for Taichi goes first (`kernels.exclusive`)
             raw = sorted(stage_hypotheses() + extra, key=lambda h: h.score.cost)
             extra, n_raw = [], n_raw + len(raw)
             seen = [G for _, G, _ in screened]

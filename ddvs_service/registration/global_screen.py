@@ -32,6 +32,7 @@ from ddvs_service.registration.images import level_matrix
 from ddvs_service.registration.planar import project
 from ddvs_service.registration.reference import normalisation
 from ddvs_service.registration.solver import DEGENERATE_RCOND, MAD_TO_SIGMA, remaining_motion
+from kernels.exclusive import GATE
 from kernels.global_screen import (
     FRAME_NORM,
     FRAME_ROI,
@@ -166,6 +167,7 @@ class BatchScreen:
                 break
             params[idx, START_G : START_G + 9] = G_l[idx].reshape(-1, 9)
             batch = np.ascontiguousarray(params[idx])
+            GATE.checkpoint()  # a frame waiting for Taichi goes first (`kernels.exclusive`)
             screen_step(ref, cur, batch, level.frame, out[: idx.size])
             acc = out[: idx.size, :N_SUMS].astype(np.float64)
             n_valid = acc[:, N_TRIANGLE + N_UNKNOWNS]

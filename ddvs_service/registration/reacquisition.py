@@ -38,20 +38,33 @@ class Acquisition:
 
 class Reacquisition:
     """Re-acquisition for a tracker on `engine` (and `general`, the general model's engine, which the initialiser's
-    step 5 then uses), with the initialiser's `config`; None: off."""
+    step 5 then uses), with the initialiser's `config`; None: off. `adopted` counts the OK results handed over."""
 
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
                  config: GlobalInitConfig | None = None) -> None:
         self.engine = engine
         self.initializer = None if config is None else GlobalInitializer(config, engine=engine, general=general)
+        self.adopted = 0  # OK results handed to the caller
 
     @property
     def enabled(self) -> bool:
         return self.initializer is not None
 
+    @property
+    def busy(self) -> bool:
+        """Never: this search runs within the call (`service.reacquirer` searches beside the caller)."""
+        return False
+
     def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
         """Initialise `current` against the engine's reference and ROI; `tracking_G`: the tracker's own estimate,
         to report a strong contradiction."""
+        found = self.search(current, tracking_G)
+        if found.status == "OK":
+            self.adopted += 1
+        return found
+
+    def search(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
+        """The search itself (what `__call__` hands over), on the calling thread."""
         if self.initializer is None:
             return Acquisition("OFF", None, "re-acquisition is off")
         prepared = self.engine.prepared
@@ -59,3 +72,9 @@ class Reacquisition:
         if found.status == "OK" and found.G is not None:
             return Acquisition("OK", found.G, found.reason, contradicts, found)
         return Acquisition("LOST", None, found.reason, found=found)
+
+    def cancel(self) -> None:
+        """Nothing to forget: this search runs within the call (`service.reacquirer` runs it beside the caller)."""
+
+    def close(self) -> None:
+        """Nothing to end (see `cancel`)."""

@@ -3,8 +3,12 @@
 Both adapt a stateful tracker to one face, `estimate(grey) -> Estimate`, with global (re-)initialisation on the first
 frame after a reference and while LOST, so the pipeline does not care which model runs. Each prepares the reference
 once: its tracker and its re-acquisition (`registration.reacquisition`, honouring `global_init` and
-`feature_source`) share the engine. The general estimator's
-parallax `ρ*` lives in the reference frame: `rho_coeffs` can be persisted and handed back after a restart.
+`feature_source`) share the prepared reference. With `background` (the service's default) the re-acquisition runs
+on a worker thread (`service.reacquirer`) on engines of its own (workspaces over the same prepared reference), so a
+frame that needs it costs the loop no more than a tracked one: it is answered untracked while the worker searches,
+and the worker's pose is adopted on a later frame only if the tracker, started from it, registers that newest frame.
+Without `background` the search runs within `estimate` (lockstep experiments: the plant waits for it). The general
+estimator's parallax `ρ*` lives in the reference frame: `rho_coeffs` can be persisted and handed back after a restart.
 """
 
 from __future__ import annotations
@@ -20,8 +24,10 @@ from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.registration.residual import residual_image
+from ddvs_service.registration.result import RegistrationResult
 from ddvs_service.registration.tracker import Tracker
 from ddvs_service.service.config import RegistrationSettings
+from ddvs_service.service.reacquirer import BackgroundReacquisition
 
 Roi = tuple[int, int, int, int]
 F64 = NDArray[np.float64]
@@ -44,29 +50,64 @@ class Estimate:
 
 
 class PlanarEstimator:
-    """Planar tracker + direct global initialiser (the planar path of the issue, `e = 0`, `ρ* = 0`). A frame that
-    needs re-acquisition (the first after a reference, any after an untracked one) is tracked only from the global
-    initialiser's estimate: when that fails the frame is untracked, never tracked on from the stale estimate."""
+    """Planar tracker + direct global initialiser (the planar path of the issue, `e = 0`, `ρ* = 0`).
 
-    def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings) -> None:
+    A frame that needs re-acquisition (any after an untracked one) is first tracked from the last good estimate
+    (the servo held the camera still since: the cheapest re-acquisition, and the only one that survives a large
+    occluder, under which the global search's photometric cost exceeds its threshold) — unless a background search
+    is running, whose thread it would slow down and be slowed down by; when that fails, from the global
+    initialiser's estimate, and when there is none (yet) the frame is untracked — never tracked on from
+    an estimate the initialiser has not confirmed. The first frame after a reference has no last good estimate. A
+    re-acquired frame passes the tracker's own checks (convergence, inliers, `registration.integrity`) like any
+    other; the pipeline's error guard and the state machine's confirmation frames come on top."""
+
+    def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings,
+                 background: bool = False) -> None:
         self.reference, self.roi, self.settings = reference, roi, settings
         engine = PlanarRegistration.prepare(reference, roi, config=settings.engine_config())
         self._tracker = Tracker(engine)
-        self._acquire = _reacquisition(engine, None, settings)
+        searcher = PlanarRegistration(engine.prepared, engine.config) if background else engine
+        self._acquire = _reacquisition(searcher, None, settings, background)
         self._needs_init = True
+        self._last_good: F64 | None = None  # where a re-acquisition tracks from first (None: nowhere yet)
+        self._before: F64 | None = None  # the estimate before the last tracked frame (reverted to by `lose`)
+        self._acquired = False  # the estimate descends from a global re-acquisition the guard has not trusted yet
 
     @property
     def G(self) -> F64:
         return self._tracker.G
 
+    @property
+    def acquisition(self) -> Reacquisition:
+        return self._acquire
+
     def assume(self, G: F64) -> None:
         """Start tracking from a known `G` (e.g. identity when the reference is the current frame)."""
         self._tracker.reset(G)
         self._needs_init = False
+        self._last_good = self._tracker.G
 
     def lose(self) -> None:
-        """Force a global re-initialisation on the next frame."""
+        """The last tracked frame's fit is suspect (the pipeline's error guard). Tracked on from the tracker's own
+        estimate, it is forgotten: the tracker goes back to the estimate before it and the next frame is
+        re-acquired by the global initialiser only (tracking again from there could reproduce the same fit frame
+        after frame, which the guard would adopt once 30 frames agree). Descended from a global re-acquisition
+        since the guard last trusted a frame, it is kept: the initialiser found it independently, and the guard
+        holds the servo until the tracked frames agree on it."""
+        if self._acquired:
+            return
         self._needs_init = True
+        if self._before is not None:
+            self._tracker.reset(self._before)
+        self._last_good = None
+
+    def trust(self) -> None:
+        """The pipeline's error guard accepted the last tracked frame."""
+        self._acquired = False
+
+    def close(self) -> None:
+        """End the background re-acquisition, if any (a new reference replaces this estimator)."""
+        self._acquire.close()
 
     def residual(self, grey: NDArray[np.float32]) -> NDArray[np.float32]:
         """The residual image of `grey` over the ROI under the current state (`registration.residual`)."""
@@ -75,23 +116,38 @@ class PlanarEstimator:
         return residual_image(self.reference, grey, self.roi, self._tracker.G, gains, beta, s.gamma, s.defocus_px)
 
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
-        message = ""
+        message, result = "", None
+        G_before = self._tracker.G
         if self._needs_init and self._acquire.enabled:
-            init = self._acquire(grey, self._tracker.G)
-            if init.G is not None:
+            if self._last_good is not None and not self._acquire.busy:  # a search competes for the GIL and CPU
+                result = self._tracker.track(grey)
+                if self._accepted(result):
+                    self._acquire.cancel()
+                    message = "re-acquired by tracking from the last good estimate"
+            if not (result is not None and self._accepted(result)):
+                init = self._acquire(grey, self._tracker.G)
+                if init.G is None:  # never track on from an unconfirmed estimate
+                    local = "" if result is None else f"tracking from the last good estimate: {result.reason}; "
+                    return Estimate(False, self._tracker.G, np.zeros(3), 0.0, 0, 0.0, 0.0,
+                                    f"{local}global initialisation: LOST ({init.reason})")
                 self._tracker.reset(init.G)
+                self._acquired = True
                 message = "global initialisation: ok" + (" (contradicted the tracking estimate)" if init.contradicts
                                                          else "")
-            else:  # never track on from the stale estimate: it is what was lost
-                return Estimate(False, self._tracker.G, np.zeros(3), 0.0, 0, 0.0, 0.0,
-                                f"global initialisation: LOST ({init.reason}); the last estimate is not used")
-        result = self._tracker.track(grey)
-        tracked = result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
+                result = None
+        if result is None:
+            result = self._tracker.track(grey)
+        tracked = self._accepted(result)
         self._needs_init = not tracked
-        if not tracked:
+        if tracked:
+            self._before, self._last_good = G_before, result.G
+        else:
             message = f"{message}; registration: {result.reason}".strip("; ")
         return Estimate(tracked, result.G, np.zeros(3), 0.0, int(sum(result.iterations)),
                         _finite(result.residual_rms), _finite(result.inlier_ratio), message)
+
+    def _accepted(self, result: RegistrationResult) -> bool:
+        return result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
 
 
 class GeneralEstimator:
@@ -99,33 +155,53 @@ class GeneralEstimator:
     tracked."""
 
     def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings,
-                 rho_coeffs: list[float] | None = None) -> None:
+                 rho_coeffs: list[float] | None = None, background: bool = False) -> None:
         self.settings = settings
         engine = GeneralRegistration.prepare(reference, roi, config=settings.general_config())
-        self._tracker = GeneralTracker(engine, _reacquisition(engine.planar, engine, settings), rho=rho_coeffs or None)
+        searcher = GeneralRegistration(engine.prepared, engine.config) if background else engine
+        self._acquire = _reacquisition(searcher.planar, searcher, settings, background)
+        self._tracker = GeneralTracker(engine, self._acquire, rho=rho_coeffs or None)
         self._G: F64 = np.eye(3)
+        self._acquired = False  # as `PlanarEstimator._acquired`
 
     @property
     def G(self) -> F64:
         return self._G
 
+    @property
+    def acquisition(self) -> Reacquisition:
+        return self._acquire
+
     def assume(self, G: F64) -> None:
         """The general tracker always re-acquires globally (it also estimates ρ* on that frame)."""
 
     def lose(self) -> None:
-        """Force a global re-acquisition of `G` and `e` on the next frame (the tracker also does so by itself
-        after `lost_after` failed frames)."""
-        self._tracker.lose()
+        """The last tracked frame's fit is suspect: re-acquire `G` and `e` globally on the next frame (the tracker
+        also does so by itself after `lost_after` failed frames) — unless the fit descends from a global
+        re-acquisition the guard has not trusted yet (`PlanarEstimator.lose`)."""
+        if not self._acquired:
+            self._tracker.lose()
+
+    def trust(self) -> None:
+        """The pipeline's error guard accepted the last tracked frame."""
+        self._acquired = False
+
+    def close(self) -> None:
+        """End the background re-acquisition, if any (a new reference replaces this estimator)."""
+        self._acquire.close()
 
     def residual(self, grey: NDArray[np.float32]) -> None:
         """Not available for the general model yet (its warp has the parallax term of eq. (2), not `G` alone)."""
         return None
 
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
+        adopted = self._acquire.adopted
         result = self._tracker.track(grey)
         tracked = result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
         if tracked:
             self._G = result.G
+            self._acquire.cancel()
+            self._acquired |= self._acquire.adopted > adopted
         coeffs = self._tracker.rho_coeffs
         return Estimate(
             tracked, result.G, result.e, float(result.rho_at(control_px)) if tracked else 0.0,
@@ -136,10 +212,11 @@ class GeneralEstimator:
 
 
 def _reacquisition(engine: PlanarRegistration, general: GeneralRegistration | None,
-                   settings: RegistrationSettings) -> Reacquisition:
-    """The service's re-acquisition on the estimator's engines: off unless `global_init`, from `feature_source`."""
+                   settings: RegistrationSettings, background: bool) -> Reacquisition:
+    """The service's re-acquisition on `engine` (and `general`): off unless `global_init`, from `feature_source`;
+    on a worker thread with `background` (the engines must then be the worker's own)."""
     config = GlobalInitConfig(feature_source=settings.feature_source) if settings.global_init else None
-    return Reacquisition(engine, general, config)
+    return (BackgroundReacquisition if background else Reacquisition)(engine, general, config)
 
 
 def _finite(x: float) -> float:

@@ -1,10 +1,12 @@
 """One servo step per frame, without I/O: register against the reference, compute the law, update the state.
 
 Data flow: grey frame → estimator (planar or general, warm-started; global initialisation on the first frame after a
-reference and while LOST) → control error and twist from `G`, `e`, `ρ*` of the control point → error guard (a tracked
-frame whose error jumped from the last trusted one is a suspect fit: treated as lost, and the estimator re-acquires
-on the next frame; `guard.ErrorGuard`) → state machine. The twist is in the current camera frame (OpenCV axes, m/s
-and rad/s) and is zero unless the state is SERVOING.
+reference and while LOST, by default on a worker thread beside this one: a frame that needs it is answered at once,
+untracked — zero twist — and the worker's pose is adopted on a later frame once the tracker registers that frame
+from it; `service.estimators`, `service.reacquirer`) → control error and twist from `G`, `e`, `ρ*` of the control
+point → error guard (a tracked frame whose error jumped from the last trusted one is a suspect fit: treated as lost,
+and the estimator re-acquires on the next frame; `guard.ErrorGuard`) → state machine. The twist is in the current
+camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOING.
 """
 
 from __future__ import annotations
@@ -19,10 +21,12 @@ from numpy.typing import NDArray
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlLaw, ControlOutput
 from ddvs_service.registration.images import to_grey
+from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.estimators import Estimate, GeneralEstimator, PlanarEstimator
 from ddvs_service.service.guard import ErrorGuard
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine
+from kernels.exclusive import GATE
 
 Roi = tuple[int, int, int, int]
 ZERO6 = np.zeros(6)
@@ -60,10 +64,14 @@ def template_roi(config: ServiceConfig, intrinsics: Intrinsics) -> Roi:
 
 
 class ServoPipeline:
-    """Reference, estimator, law and state machine of one servo; `step(frame)` runs one control period."""
+    """Reference, estimator, law and state machine of one servo; `step(frame)` runs one control period.
+    `background_reacquisition`: re-acquire on a worker thread (the service); False: within `step` (lockstep
+    experiments, where the plant waits for the answer). The pipeline's Taichi work holds `kernels.exclusive.GATE`."""
 
-    def __init__(self, config: ServiceConfig, intrinsics: Intrinsics | None = None) -> None:
+    def __init__(self, config: ServiceConfig, intrinsics: Intrinsics | None = None,
+                 background_reacquisition: bool = True) -> None:
         self.config = config
+        self.background_reacquisition = background_reacquisition
         self.intrinsics = intrinsics
         self.machine = StateMachine(config.control.stop_threshold,
                                     config.control.stop_threshold * config.control.resume_factor,
@@ -126,10 +134,13 @@ class ServoPipeline:
         roi = roi if roi is not None else template_roi(self.config, self.intrinsics)
         settings = self.config.registration
         estimator: PlanarEstimator | GeneralEstimator
-        if settings.model == "general":
-            estimator = GeneralEstimator(grey, roi, settings, self.rho_coeffs)
-        else:
-            estimator = PlanarEstimator(grey, roi, settings)
+        background = self.background_reacquisition
+        with GATE.hold():
+            if settings.model == "general":
+                estimator = GeneralEstimator(grey, roi, settings, self.rho_coeffs, background)
+            else:
+                estimator = PlanarEstimator(grey, roi, settings, background)
+        self.close()
         self.reference, self.roi, self._estimator = grey, roi, estimator
         self.guard.reset()
         self._recent.clear()
@@ -137,8 +148,20 @@ class ServoPipeline:
         return estimator
 
     def clear_reference(self) -> None:
+        self.close()
         self.reference, self.roi, self._estimator, self.rho_coeffs = None, None, None, []
         self.machine.reset()
+
+    def close(self) -> None:
+        """End the estimator's background re-acquisition, if any (it finishes its current search unused)."""
+        if self._estimator is not None:
+            self._estimator.close()
+
+    @property
+    def reacquisition(self) -> Reacquisition | None:
+        """The estimator's re-acquisition (a `service.reacquirer.BackgroundReacquisition` with
+        `background_reacquisition`), None without a reference."""
+        return None if self._estimator is None else self._estimator.acquisition
 
     @property
     def G(self) -> NDArray[np.float64] | None:
@@ -161,9 +184,10 @@ class ServoPipeline:
             raise ValueError(f"frame is {grey.shape[1]}×{grey.shape[0]}; the reference is "
                              f"{self.reference.shape[1]}×{self.reference.shape[0]}")
         t0 = time.perf_counter()
-        if self._suspect:
-            self._estimator.lose()
-        est = self._estimator.estimate(grey, self.control_px)
+        with GATE.hold():
+            if self._suspect:
+                self._estimator.lose()
+            est = self._estimator.estimate(grey, self.control_px)
         if est.rho_coeffs:
             self.rho_coeffs = est.rho_coeffs
         t1 = time.perf_counter()
@@ -174,6 +198,8 @@ class ServoPipeline:
             self.guard.reset()
         suspect = self.guard.check(out.error) if out is not None and self.machine.servo_active else ""
         self._suspect = bool(suspect)
+        if out is not None and not suspect:
+            self._estimator.trust()
         if suspect:
             out = None
             est.message = f"{est.message}; {suspect}".strip("; ")
@@ -195,7 +221,8 @@ class ServoPipeline:
         and with the general model (not available yet)."""
         if self._estimator is None:
             return None
-        return self._estimator.residual(to_grey(frame))
+        with GATE.hold():
+            return self._estimator.residual(to_grey(frame))
 
     def _settled_norm(self, out: ControlOutput | None) -> float:
         """Norm of the mean control error over the last `settle_frames` tracked frames (nan for an untracked

@@ -41,7 +41,7 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None) -> float:
     """Run the configured frame path once on a synthetic scene; return the seconds it took."""
     t0 = time.monotonic()
     intrinsics = intrinsics or _fitting(WARM_UP_INTRINSICS, config.registration.roi)
-    pipeline = ServoPipeline(config, intrinsics)
+    pipeline = ServoPipeline(config, intrinsics, background_reacquisition=False)  # the initialiser on this thread
     reference = synthetic_scene(intrinsics)
     pipeline.set_reference(reference)
     pipeline.machine.start()

@@ -1,0 +1,120 @@
+"""What a LOST frame costs the servo loop: re-acquisition beside the loop (worker thread) against within it (issue 20).
+
+The service's per-frame code (`ServoPipeline`, shipped configuration `configs/serve/ur5_poster.json`, f = 420 px,
+320×240 frames of the textured poster, template 70×70 or a 200×150 ROI) servos on the reference view, then the view
+turns by 40° about the optical axis and shifts (`--turn-deg`): beyond the tracker's reach, so the frame is LOST and
+only the global initialiser finds the pose again. Frames of that view are fed at 30 Hz (each `step` starts on the
+next 33.3 ms tick, or at once when the previous one ran late) until the servo is SERVOING again (the error guard
+holds a view that jumped for `rebase_frames` frames) or `--timeout` s passed.
+
+Per mode: the step time of the LOST frames (median, 95th percentile, max), how many LOST frames were answered while
+the worker searched, the time from the first LOST frame to SERVOING, the searches the worker ran, and the longest a
+`step` waited for the Taichi gate (`kernels.exclusive.GATE`) while the worker held it. Inline mode
+(`background_reacquisition=False`) is the baseline: every LOST frame runs the whole initialiser. Load: this
+process alone (one loop thread and, in background mode, one worker) after the service's warm-up (`service.startup`:
+every kernel compiled); the load average is printed with the figures.
+
+    .venv/bin/python benchmarks/bench_reacquisition.py [--rois 70 200] [--turn-deg 40] [--timeout 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ddvs_service.camera import Intrinsics  # noqa: E402 - after the path set-up for running as a script
+from ddvs_service.lie import so3_exp  # noqa: E402
+from ddvs_service.service.config import ServiceConfig  # noqa: E402
+from ddvs_service.service.pipeline import ServoPipeline  # noqa: E402
+from ddvs_service.service.startup import warm_up  # noqa: E402
+from ddvs_service.service.state import ServoState  # noqa: E402
+from kernels.exclusive import GATE  # noqa: E402
+from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene  # noqa: E402
+from sim.textures import TEXTURES, load_texture  # noqa: E402
+
+CAM = Intrinsics.centred(420.0, 320, 240)
+PERIOD_S = 1.0 / 30.0
+ROIS = {70: (125, 85, 70, 70), 200: (60, 45, 200, 150)}
+
+
+def service_config(roi: tuple[int, int, int, int]) -> ServiceConfig:
+    return ServiceConfig.from_file(ROOT / "configs" / "serve" / "ur5_poster.json").merged({
+        "intrinsics": {"fx": CAM.fx, "fy": CAM.fy, "cx": CAM.cx, "cy": CAM.cy, "width": CAM.width,
+                       "height": CAM.height},
+        "registration": {"roi": list(roi)}})
+
+
+def measure(scene: PlanarScene, roi: tuple[int, int, int, int], background: bool, turn_deg: float,
+            timeout_s: float) -> dict[str, object]:
+    servo = ServoPipeline(service_config(roi), CAM, background_reacquisition=background)
+    reference = np.clip(np.rint(scene.render()), 0, 255).astype(np.uint8)
+    servo.set_reference(reference, roi, G0=np.eye(3))
+    servo.machine.start()
+    for _ in range(5):
+        servo.step(reference)
+    H = scene.homography(so3_exp(np.radians([0.0, 0.0, turn_deg])), np.array([0.03, 0.0, 0.0]))
+    moved = np.clip(np.rint(scene.render(H)), 0, 255).astype(np.uint8)
+    worker = getattr(servo._estimator, "_acquire", None)
+    GATE.longest_wait_s = 0.0
+    searching_ms: list[float] = []  # the frames up to the one that adopted the initialiser's pose
+    held_ms: list[float] = []  # LOST frames after it: the error guard holds a view that jumped
+    answered_while_searching = 0
+    t_first = time.perf_counter()
+    tick = t_first
+    state, adopted = ServoState.SERVOING, False
+    while time.perf_counter() - t_first < timeout_s:
+        tick = max(tick + PERIOD_S, time.perf_counter())
+        time.sleep(max(0.0, tick - time.perf_counter()))
+        t0 = time.perf_counter()
+        step = servo.step(moved)
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        state = step.state
+        if state == ServoState.SERVOING:
+            break
+        assert not np.any(step.twist), "a LOST frame was answered with a non-zero twist"
+        if adopted:
+            held_ms.append(dt_ms)
+        else:
+            searching_ms.append(dt_ms)
+            answered_while_searching += int(bool(getattr(worker, "busy", False)))
+            adopted = step.message.startswith("global initialisation: ok")
+    recovered_s = time.perf_counter() - t_first
+    servo.close()
+    search = np.asarray(searching_ms)
+    return {
+        "roi": f"{roi[2]}x{roi[3]}", "mode": "background" if background else "inline",
+        "frames_to_reacquire": len(searching_ms), "answered_while_searching": answered_while_searching,
+        "step_ms_median": float(np.median(search)), "step_ms_max": float(search.max()),
+        "held_frames": len(held_ms), "held_step_ms_max": max(held_ms, default=float("nan")),
+        "to_servoing_s": recovered_s if state == ServoState.SERVOING else None,
+        "searches": getattr(worker, "searches", None), "gate_longest_wait_ms": GATE.longest_wait_s * 1e3,
+        "load_average": os.getloadavg()[0],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rois", type=int, nargs="+", default=[70, 200], choices=sorted(ROIS))
+    parser.add_argument("--turn-deg", type=float, default=40.0)
+    parser.add_argument("--timeout", type=float, default=20.0)
+    args = parser.parse_args()
+    scene = PlanarScene(CAM, load_texture(TEXTURES[1], POSTER_BLUR_SIGMA))
+    print(f"warm-up (the service's, kernels compiled or loaded): {warm_up(service_config(ROIS[70]), CAM):.1f} s; "
+          f"load average before: {os.getloadavg()}", flush=True)
+    for size in args.rois:
+        for background in (True, False):
+            row = measure(scene, ROIS[size], background, args.turn_deg, args.timeout)
+            print({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
+    print(f"load average after: {os.getloadavg()}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,99 @@
+"""Taichi from several Python threads: one thread at a time, the servo loop first.
+
+Taichi 1.7 is not thread-safe (taichi-dev/taichi#2022): compiling a kernel sets process-wide runtime state
+(`compiling_callable`, the C++ program's kernel tables) while Python may switch threads in the middle, so two threads
+must never be inside Taichi at once. Kernel *execution* already holds the GIL (a launch blocks every other Python
+thread until it returns), so serialising the launches costs no parallelism.
+
+`GATE` is the process-wide lock. A thread that answers frames holds it with `GATE.hold()` around its Taichi work
+(one frame's registration: milliseconds). A background thread (re-acquisition) holds it with `GATE.background()`
+around a long job and calls `GATE.checkpoint()` between kernel launches: when a `hold()` is waiting, the background
+thread hands the lock over there and takes it back afterwards, so a frame waits at most for the work between two
+checkpoints, never for the whole job. Both are re-entrant on the thread that holds the lock (a job run on the loop
+thread itself passes its checkpoints straight through). `longest_wait_s` records the longest a `hold()` waited
+for the lock — the figure to keep well under a frame period.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+
+class Gate:
+    """A re-entrant lock whose foreground holders (`hold`) go before background ones (`background`, `checkpoint`)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self._owner: int | None = None
+        self._depth = 0
+        self._background = False
+        self._waiting = 0  # foreground threads waiting for the lock
+        self.longest_wait_s = 0.0
+
+    @contextmanager
+    def hold(self) -> Iterator[None]:
+        """Hold the lock as a foreground thread (waits at most for a background holder's next checkpoint)."""
+        self._acquire(background=False)
+        try:
+            yield
+        finally:
+            self._release()
+
+    @contextmanager
+    def background(self) -> Iterator[None]:
+        """Hold the lock as a background thread: it yields to foreground waiters at each `checkpoint`."""
+        self._acquire(background=True)
+        try:
+            yield
+        finally:
+            self._release()
+
+    def checkpoint(self) -> None:
+        """Hand the lock to waiting foreground threads, if the calling thread holds it in the background."""
+        if self._waiting == 0:  # the common case, without the condition's lock (a stale read waits one launch)
+            return
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner != me or not self._background or self._waiting == 0:
+                return
+            depth = self._depth
+            self._owner, self._depth, self._background = None, 0, False
+            self._cond.notify_all()
+            while self._owner is not None or self._waiting > 0:
+                self._cond.wait()
+            self._owner, self._depth, self._background = me, depth, True
+
+    def _acquire(self, background: bool) -> None:
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner == me:
+                self._depth += 1
+                return
+            if background:
+                while self._owner is not None or self._waiting > 0:
+                    self._cond.wait()
+            else:
+                self._waiting += 1
+                start = time.perf_counter()
+                try:
+                    while self._owner is not None:
+                        self._cond.wait()
+                finally:
+                    self._waiting -= 1
+                self.longest_wait_s = max(self.longest_wait_s, time.perf_counter() - start)
+            self._owner, self._depth, self._background = me, 1, background
+
+    def _release(self) -> None:
+        with self._cond:
+            if self._owner != threading.get_ident():
+                raise RuntimeError("the Taichi gate is released by a thread that does not hold it")
+            self._depth -= 1
+            if self._depth == 0:
+                self._owner, self._background = None, False
+                self._cond.notify_all()
+
+
+GATE = Gate()
