@@ -126,10 +126,12 @@ def test_occlusion_fails_without_robust_weights(texture, occluded_pair):
     assert corner_error(H_true, result.H) > 0.1
 
 
-@pytest.mark.parametrize(("predict", "median_bound", "max_bound"), [(False, 6, 8), (True, 3, 5)])
+@pytest.mark.parametrize(("predict", "median_bound", "max_bound"), [(False, 7, 8), (True, 3, 5)])
 def test_tracker_converges_in_few_iterations(predict, median_bound, max_bound):
     """Consecutive frames of a smooth trajectory (2 px, 0.1°, 0.1 % scale apart, the unblurred texture): every frame
-    converges within 0.05 px in a few iterations; the constant-velocity prediction halves them (measured 6 and 3)."""
+    converges within 0.05 px in a few iterations; the constant-velocity prediction more than halves them (measured
+    7 and 3; without the prediction 6 before the robust scale was capped at 0.6× the last frames' inliers' scale,
+    `registration.integrity`: the 2 px the frame starts off are weighted down on the first iterations)."""
     img = load("boat", 1)
     truths = [similarity_about(CENTRE, (1.6 * k, 1.2 * k), 0.1 * k, 1.0 + 0.001 * k) for k in range(13)]
     tracker = Tracker.prepare(img, ROI, RegistrationConfig(predict_motion=predict))

@@ -118,7 +118,7 @@ class GeneralTracker:
         self._G_before = self._G
         self._last_G = result.G
         self._G, self._e, self._gains, self._beta = result.G, result.e, result.S, result.beta
-        self._integrity.accept(result.scale)
+        self._integrity.accept(result.scale, result.inlier_ratio)
         self._scale = max(result.scale, self._integrity.config.min_anchor) if np.isfinite(result.scale) else None
         self._information = self._information + result.rho_information
         result.rho_information = self._information.copy()

@@ -91,7 +91,7 @@ class Tracker:
             if implausible:
                 result.converged, result.reason = False, implausible
         if result.converged:
-            self._integrity.accept(result.scale)
+            self._integrity.accept(result.scale, result.inlier_ratio)
             self._G_before, self._G = self._G, result.G
             # the next frame's first σ: never below the anchor's floor (a frame identical to the reference measures
             # σ at the engine's floor, and Tukey weights at that scale would reject the next frame's every pixel)
