@@ -71,8 +71,8 @@ def service_config(port: int, state_dir: Path) -> ServiceConfig:
 class Operator:
     """The test's side: publishes frames, sends commands, collects twists and statuses."""
 
-    def __init__(self, port: int) -> None:
-        self.keys = Keys("ddvs", "t0")
+    def __init__(self, port: int, robot: str = "t0") -> None:
+        self.keys = Keys("ddvs", robot)
         self.session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
         self.twists: list[np.ndarray] = []
         self.twist_stamps: list[int] = []  # header stamp of each twist (ns): a frame's, or the time of a zero twist
@@ -214,11 +214,13 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     assert not np.any(op.twists[-1])
 
     # The camera jumped 6 px and 3° in one frame (90°/s, beyond any servoed motion): a suspect fit, held still (LOST,
-    # zero twist) until 30 frames agree on the new error (the error guard), then the servo resumes.
+    # zero twist) while the global initialiser re-acquires in the background (every frame meanwhile answered at
+    # once: how many depends on the search's time) and until 30 frames agree on the new error (the error guard),
+    # then the servo resumes.
     moved = shifted(img, 6.0, -4.0, 3.0)
     status = op.send(moved)
     assert status["state"] == "LOST" and "suspect fit" in status["message"] and not np.any(op.twists[-1]), status
-    for _ in range(40):
+    for _ in range(2000):
         status = op.send(moved)
         if status["state"] == "SERVOING":
             break

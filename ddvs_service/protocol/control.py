@@ -5,7 +5,9 @@ and non-finite floats too. Units: times in integer nanoseconds since the Unix ep
 milliseconds, twists `[v (m/s); ω (rad/s)]` in the current camera frame, pixels as in `ddvs_service.camera`.
 The error vector `e` and `error_norm` are the decoupled servo error of docs/equations.md (eq. numbers there).
 
-Commands travel as the payload of a Zenoh query on `…/servo/command`; the reply is a `Reply`.
+Commands travel as the payload of a Zenoh query on `…/servo/command` (a robot's commands) or, for the process
+commands `PROCESS_OPS` (which robots one `ddvs serve` process serves), on `process_command_key(prefix, process)`; the
+reply is a `Reply`.
 `parse_command` / `parse_message` turn bytes into models and raise only `InvalidMessage`; `dump` is the inverse.
 JSON schemas of these models are committed under `ddvs_service/schemas/` (see `schemas.py`).
 """
@@ -25,8 +27,11 @@ COMMAND_MAX_BYTES = 16 << 20
 """Bound on a JSON message (a 1920×1080 float32 .npy reference upload is ≈ 11 MiB in base64)."""
 
 ServoStateName = Literal["IDLE", "READY", "SERVOING", "CONVERGED", "LOST", "STOPPED"]
-CommandOp = Literal["set_reference", "start", "stop", "reset", "get_state", "get_config", "set_config"]
+CommandOp = Literal["set_reference", "start", "stop", "reset", "get_state", "get_config", "set_config",
+                    "add_robot", "remove_robot", "list_robots"]
 COMMAND_OPS: tuple[str, ...] = get_args(CommandOp)
+PROCESS_OPS: tuple[str, ...] = ("add_robot", "remove_robot", "list_robots")
+"""Commands of a `ddvs serve` process, answered on its process key, not on a robot's `…/servo/command`."""
 Vector6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 NonNegative = Annotated[float, Field(ge=0.0)]
 Count = Annotated[int, Field(ge=0)]
@@ -56,12 +61,20 @@ class ReferenceImage(_Message):
         return decode_upload(self.data, self.format, max_pixels)
 
 
+def process_command_key(prefix: str, process: str) -> str:
+    """The key of a `ddvs serve` process's commands (`PROCESS_OPS`): `<prefix>/serve/<process>/command`."""
+    return f"{prefix}/serve/{process}/command"
+
+
 class Command(_Message):
     """A request to the servo service.
 
     - `set_reference`: `source` "next_frame" (use the next camera frame) or "upload" (with `image`); optional `roi`.
     - `start`, `stop`, `reset`, `get_state`, `get_config`: no arguments.
     - `set_config`: `config`, a (partial) configuration object validated by the service.
+    - `add_robot` (process): `robot`, the name to serve; optional `config`, that robot's settings over the process's
+      configuration; `fresh` true ignores (and deletes) the robot's persisted state.
+    - `remove_robot` (process): `robot`. `list_robots` (process): no arguments.
     `id` is an optional client tag echoed in logs.
     """
 
@@ -72,6 +85,8 @@ class Command(_Message):
     image: ReferenceImage | None = None
     roi: Roi | None = None
     config: dict[str, Any] | None = None
+    robot: Annotated[str, Field(min_length=1, max_length=256)] | None = None
+    fresh: bool = False
 
     @model_validator(mode="after")
     def _arguments_match_op(self) -> Command:
@@ -82,8 +97,15 @@ class Command(_Message):
                 raise ValueError("set_reference takes 'image' exactly when source is 'upload'")
         elif self.source is not None or self.image is not None or self.roi is not None:
             raise ValueError(f"'source', 'image' and 'roi' belong to set_reference, not to {self.op}")
-        if (self.op == "set_config") != (self.config is not None):
-            raise ValueError("'config' is required by set_config and not allowed with any other op")
+        if self.op == "set_config" and self.config is None:
+            raise ValueError("'config' is required by set_config")
+        if self.config is not None and self.op not in ("set_config", "add_robot"):
+            raise ValueError(f"'config' belongs to set_config and add_robot, not to {self.op}")
+        if (self.op in ("add_robot", "remove_robot")) != (self.robot is not None):
+            raise ValueError(f"'robot' is required by add_robot and remove_robot and not allowed with {self.op}"
+                             if self.robot is not None else f"{self.op} needs 'robot': the robot's name")
+        if self.fresh and self.op != "add_robot":
+            raise ValueError(f"'fresh' belongs to add_robot, not to {self.op}")
         return self
 
 

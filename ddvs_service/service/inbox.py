@@ -13,6 +13,11 @@ Frame bookkeeping happens here, where frames arrive, so it does not depend on wh
 its arrival index (1, 2, …) and arrival time (`time.monotonic()`, seconds), the time of the last arrival is what the
 watchdog measures, and a frame superseded before the loop took it is counted once, when it is superseded (`dropped`
 only grows).
+
+One loop thread serves several robots (`service.process`): each robot has its own inbox, all of them notify one
+`Wakeup` (a shared condition), and `wait(timeout, others)` sleeps until any of them holds something. Each frame also
+records `Wakeup.turns` at its arrival (how many frames the loop had taken by then, over every robot), from which the
+scheduler measures what the frame waited behind (`service.scheduler`).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -30,18 +36,30 @@ SampleT = TypeVar("SampleT")
 
 @dataclass(frozen=True)
 class Arrival(Generic[SampleT]):
-    """A frame as it arrived: the sample, its arrival index (the n-th frame received) and time (monotonic s)."""
+    """A frame as it arrived: the sample, its arrival index (the n-th frame received), time (monotonic s) and the
+    loop's `Wakeup.turns` at that moment."""
 
     sample: SampleT
     index: int
     t: float
+    turn: int = 0
+
+
+class Wakeup:
+    """What the inboxes of one loop thread share: the condition they notify, and `turns`, the number of frames the
+    loop has taken so far over all its inboxes (counted by `Inbox.take_frame`, under the condition)."""
+
+    def __init__(self) -> None:
+        self.condition = threading.Condition()
+        self.turns = 0
 
 
 class Inbox:
     """Latest frame, latest camera info and pending commands, filled by Zenoh callbacks, drained by one thread."""
 
-    def __init__(self, max_queries: int = 64) -> None:
-        self._ready = threading.Condition()
+    def __init__(self, max_queries: int = 64, wakeup: Wakeup | None = None) -> None:
+        self.wakeup = wakeup or Wakeup()
+        self._ready = self.wakeup.condition
         self._frame: Arrival[zenoh.Sample] | None = None
         self._info: zenoh.Sample | None = None
         self._queries: deque[zenoh.Query] = deque(maxlen=max_queries)
@@ -56,7 +74,7 @@ class Inbox:
             if self._frame is not None:
                 self._frames_superseded += 1
             self._frames_received += 1
-            self._frame = Arrival(sample, self._frames_received, t)
+            self._frame = Arrival(sample, self._frames_received, t, self.wakeup.turns)
             self._last_arrival_t = t
             self._ready.notify()
 
@@ -71,11 +89,24 @@ class Inbox:
             self._ready.notify()
 
     # --- the loop thread ----------------------------------------------------------------------------------------
-    def wait(self, timeout_s: float) -> None:
-        """Return as soon as anything is pending, or after `timeout_s` seconds."""
+    def wait(self, timeout_s: float, others: Iterable[Inbox] = ()) -> None:
+        """Return as soon as anything is pending here or in `others` (inboxes of the same `Wakeup`), or after
+        `timeout_s` seconds."""
         with self._ready:
-            if self._frame is None and self._info is None and not self._queries:
+            if not self.pending and not any(other.pending for other in others):
                 self._ready.wait(timeout_s)
+
+    @property
+    def pending(self) -> bool:
+        """Anything waiting: a frame, a camera info or a command."""
+        with self._ready:
+            return self._frame is not None or self._info is not None or bool(self._queries)
+
+    @property
+    def has_frame(self) -> bool:
+        """A frame is waiting."""
+        with self._ready:
+            return self._frame is not None
 
     def take_query(self) -> zenoh.Query | None:
         """The oldest pending command, or None."""
@@ -89,9 +120,12 @@ class Inbox:
             return info
 
     def take_frame(self) -> Arrival[zenoh.Sample] | None:
-        """The newest frame not yet taken, or None (frames superseded before being taken are dropped)."""
+        """The newest frame not yet taken, or None (frames superseded before being taken are dropped); a frame
+        taken counts one turn of the loop (`Wakeup.turns`)."""
         with self._ready:
             frame, self._frame = self._frame, None
+            if frame is not None:
+                self.wakeup.turns += 1
             return frame
 
     @property

@@ -1,4 +1,8 @@
-"""`ddvs serve --config FILE`: run the servo service until SIGTERM/SIGINT (then zero twist, close, exit 0)."""
+"""`ddvs serve --config FILE`: run the servo service until SIGTERM/SIGINT (then zero twist, close, exit 0).
+
+One process serves the robot the configuration names, or every robot of its `robots` list (or of `--robots`),
+and robots added at run time (`service.fleet_config`, `service.process`).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +16,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="FILE", help="service configuration (JSON); defaults apply without it")
     parser.add_argument("--state-dir", metavar="DIR", help="where the reference, configuration and state persist")
     parser.add_argument("--robot", help="robot name in the key expressions (overrides the configuration)")
+    parser.add_argument("--robots", nargs="+", metavar="NAME",
+                        help="serve these robots in this process, each with the configuration's settings (replaces "
+                             "the configuration's robots list; each persists in STATE_DIR/robots/NAME)")
+    parser.add_argument("--process", metavar="NAME",
+                        help="the process's name in its command key <prefix>/serve/NAME/command (add_robot, "
+                             "remove_robot, list_robots; default: the first robot's name)")
     parser.add_argument("--fresh", action="store_true",
                         help="ignore (and delete) the persisted state instead of resuming it")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
@@ -48,38 +58,41 @@ def run(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from ddvs_service.logs import setup_logging
+    from ddvs_service.logs import fields, setup_logging
     from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.session import session_config_from_args
     from ddvs_service.service.config import ServiceConfig
-    from ddvs_service.service.node import ServoNode
+    from ddvs_service.service.fleet_config import FleetConfig, read_file
+    from ddvs_service.service.process import ServeProcess
 
     setup_logging(args.log_level)
-    config = ServiceConfig.from_file(args.config) if args.config else ServiceConfig()
-    update: dict[str, object] = {"zenoh": session_config_from_args(args, base=config.zenoh),
-                                 "ros": ros_settings_from_args(args, base=config.ros)}
-    if args.state_dir:
-        update["state_dir"] = args.state_dir
-    if args.robot:
-        update["robot"] = args.robot
-    config = config.model_copy(update=update)
-    config.check()
-    from ddvs_service.protocol.keys import Keys
-    from ddvs_service.protocol.security import check_robot_covered
-
-    if not check_robot_covered(Keys(config.prefix, config.robot), config.zenoh.zenoh_config):
-        return 2  # logged: the router configuration beside ours would silently drop everything of this robot
+    log = logging.getLogger("ddvs.serve")
+    try:
+        base, robots, process = read_file(args.config) if args.config else (ServiceConfig(), None, None)
+        update: dict[str, object] = {"zenoh": session_config_from_args(args, base=base.zenoh),
+                                     "ros": ros_settings_from_args(args, base=base.ros)}
+        if args.state_dir:
+            update["state_dir"] = args.state_dir
+        if args.robot:
+            update["robot"] = args.robot
+        if args.robots:
+            robots = [{"robot": name} for name in args.robots]
+        base = base.model_copy(update=update)
+        base.check()
+        fleet = FleetConfig(base, robots, args.process or process)
+    except ValueError as exc:
+        log.error("configuration refused", extra=fields(error=str(exc)))
+        return 2
     if args.fresh:
-        shutil.rmtree(config.state_dir, ignore_errors=True)
+        shutil.rmtree(base.state_dir, ignore_errors=True)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    node = ServoNode(config)
+    served = ServeProcess(fleet, warmup=args.warmup)
+    if served.uncovered():
+        return 2  # logged: the router configuration beside ours would silently drop everything of those robots
     if args.warmup:
-        from ddvs_service.logs import fields
-        from ddvs_service.service.startup import warm_up
-
-        seconds = warm_up(node.config, node.pipeline.intrinsics)
-        logging.getLogger("ddvs.serve").info("kernels warmed up", extra=fields(seconds=round(seconds, 3)))
-    node.run(stop)
+        seconds = served.warm_up()
+        log.info("warm-up done", extra=fields(seconds=round(seconds, 3), robots=len(served.robots)))
+    served.run(stop)
     return 0

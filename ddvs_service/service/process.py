@@ -1,0 +1,216 @@
+"""One `ddvs serve` process: its Zenoh session, its loop thread, the robots it serves and its process commands.
+
+All robots share the process's Taichi runtime and its compiled kernels, and one loop thread (Taichi launches and
+compiles on the thread that runs it). Each turn the loop runs: the oldest pending process command
+(`<prefix>/serve/<process>/command`: `add_robot`, `remove_robot`, `list_robots`), each robot's oldest pending
+command and newest camera info, one frame — the newest of the next robot in round-robin order that has one
+(`scheduler.RoundRobin`: a robot's frame waits behind at most one frame of each other robot) — then every robot's
+watchdog. Between turns it sleeps until something arrives for the process or any robot, or a watchdog is due.
+A robot's bad frame or command is answered for that robot alone; the others go on.
+
+`add_robot` builds the robot (its persisted state resumed from `state_dir/robots/<robot>`, or deleted first with
+`fresh`), compiles its kernels on this thread when its registration settings are new to the process (the other
+robots wait that long), declares its keys and records it in `robots.json`; `remove_robot` publishes its zero twist,
+undeclares its keys, flushes its state and records the removal. Shutdown (`stop` set): every robot's zero twist
+and last state, then every Zenoh object undeclared and the session closed.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+from collections.abc import Iterable
+from typing import Any
+
+import zenoh
+
+from ddvs_service.logs import fields
+from ddvs_service.protocol import Command, InvalidMessage, Keys, ProtocolError, Reply, dump, open_session, parse_command
+from ddvs_service.protocol.control import PROCESS_OPS
+from ddvs_service.protocol.security import check_robot_covered, warn_if_insecure
+from ddvs_service.service.fleet_config import FleetChanges, FleetConfig
+from ddvs_service.service.inbox import Inbox, Wakeup
+from ddvs_service.service.persistence import BackgroundWriter, StateStore
+from ddvs_service.service.robot import RobotServo
+from ddvs_service.service.scheduler import RoundRobin
+
+log = logging.getLogger("ddvs.serve")
+MAX_WAIT_S = 0.05  # longest sleep between turns: how soon a set `stop` is noticed
+
+
+class ServeProcess:
+    """Serves `fleet`'s robots (or the given `robots`, built on `wakeup`) until `run`'s `stop` is set.
+    `warmup`: compile each new registration configuration's kernels before its robot is served."""
+
+    def __init__(self, fleet: FleetConfig, robots: Iterable[RobotServo] | None = None, wakeup: Wakeup | None = None,
+                 warmup: bool = True) -> None:
+        self.fleet = fleet
+        self.warmup = warmup
+        self.wakeup = wakeup or Wakeup()
+        self.inbox = Inbox(wakeup=self.wakeup)  # the process's commands
+        self.writer = BackgroundWriter(StateStore(fleet.base.state_dir))
+        self.changes = FleetChanges(self.writer)
+        self.robots: dict[str, RobotServo] = {}
+        self.scheduler = RoundRobin()
+        self._warmed: set[str] = set()
+        self._session: zenoh.Session | None = None
+        if robots is None:
+            configs, errors = fleet.to_serve(self.changes)
+            for name, error in errors.items():
+                log.error("a robot added at run time is not served: its settings no longer apply",
+                          extra=fields(robot=name, error=error))
+            robots = [RobotServo(config, self.wakeup) for config in configs.values()]
+        for robot in robots:
+            self._schedule(robot)
+
+    def _schedule(self, robot: RobotServo) -> None:
+        if robot.inbox.wakeup is not self.wakeup:
+            raise ValueError(f"robot {robot.name!r} was built on another loop's wake-up")
+        self.scheduler.add(robot.name)
+        self.robots[robot.name] = robot
+
+    def uncovered(self) -> list[str]:
+        """Robots a router configuration beside the process's Zenoh configuration would cut off (logged)."""
+        return [name for name, robot in self.robots.items()
+                if not check_robot_covered(robot.keys, self.fleet.base.zenoh.zenoh_config)]
+
+    def warm_up(self) -> float:
+        """Compile the kernels of every robot's registration settings not compiled yet; the seconds it took."""
+        return sum(self._warm_up(robot) for robot in self.robots.values())
+
+    def _warm_up(self, robot: RobotServo) -> float:
+        from ddvs_service.service.startup import warm_up
+
+        key = robot.config.registration.model_dump_json()
+        if key in self._warmed:
+            return 0.0
+        seconds = warm_up(robot.config, robot.pipeline.intrinsics)
+        self._warmed.add(key)
+        log.info("kernels warmed up", extra=fields(robot=robot.name, seconds=round(seconds, 3)))
+        return seconds
+
+    # --- the loop -----------------------------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        """Serve until `stop` is set. Every robot publishes a zero twist; every Zenoh object is closed."""
+        warn_if_insecure(self.fleet.base.zenoh, log)
+        session = open_session(self.fleet.base.zenoh)
+        try:
+            self._serve(session, stop)
+        finally:
+            session.close()
+            for robot in self.robots.values():
+                robot.writer.close()
+            self.writer.close()
+
+    def _serve(self, session: zenoh.Session, stop: threading.Event) -> None:
+        self._session = session
+        commands = session.declare_queryable(self.fleet.command_key, self.inbox.on_query)
+        try:
+            for robot in self.robots.values():
+                robot.open(session)
+            log.info("process serving", extra=fields(process=self.fleet.process, command_key=self.fleet.command_key,
+                                                     robots=list(self.robots)))
+            while not stop.is_set():
+                self._turn()
+        finally:
+            for robot in self.robots.values():
+                robot.close("service shutting down")
+            commands.undeclare()
+            log.info("service stopped", extra=fields(process=self.fleet.process, robots=list(self.robots)))
+
+    def _turn(self) -> None:
+        robots = list(self.robots.values())
+        timeout = min((robot.wait_timeout(MAX_WAIT_S) for robot in robots), default=MAX_WAIT_S)
+        self.inbox.wait(timeout, [robot.inbox for robot in robots])
+        self._handle_query(self.inbox.take_query())
+        for robot in self.robots.values():
+            robot.handle_inputs()
+        name = self.scheduler.pick(lambda n: self.robots[n].inbox.has_frame)
+        if name is not None:
+            robot = self.robots[name]
+            arrival = robot.inbox.take_frame()
+            if arrival is not None:
+                self.scheduler.take(name, arrival.turn, self.wakeup.turns)
+                robot.handle_frame(arrival)
+        for robot in self.robots.values():
+            robot.watchdog()
+
+    # --- process commands ---------------------------------------------------------------------------------------
+    def _handle_query(self, query: zenoh.Query | None) -> None:
+        if query is None:
+            return
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            query.reply(query.key_expr, dump(self.handle_command(payload)))
+        finally:
+            query.drop()
+
+    def handle_command(self, payload: bytes) -> Reply:
+        """Execute one process command; any failure is a `Reply.failure` naming the problem, nothing changed."""
+        try:
+            command = parse_command(payload)
+        except (InvalidMessage, ProtocolError) as exc:
+            log.warning("process command rejected", extra=fields(error=str(exc)))
+            return Reply.failure(str(exc))
+        if command.op not in PROCESS_OPS:
+            return Reply.failure(f"{command.op} is a robot's command: send it to <prefix>/<robot>/servo/command "
+                                 f"(this process's key takes {', '.join(PROCESS_OPS)})")
+        try:
+            data = self._execute(command)
+        except (ValueError, OSError) as exc:
+            log.warning("process command refused", extra=fields(op=command.op, robot=command.robot, error=str(exc)))
+            return Reply.failure(f"{command.op}: {exc}")
+        log.info("process command executed", extra=fields(op=command.op, robot=command.robot))
+        return Reply.success(data)
+
+    def _execute(self, command: Command) -> dict[str, Any]:
+        if command.op == "list_robots":
+            return {"process": self.fleet.process, "robots": [self._summary(r) for r in self.robots.values()]}
+        assert command.robot is not None
+        if command.op == "add_robot":
+            return self._add(command.robot, command.config or {}, command.fresh)
+        return self._remove(command.robot)
+
+    def _add(self, name: str, settings: dict[str, Any], fresh: bool) -> dict[str, Any]:
+        if name in self.robots:
+            raise ValueError(f"robot {name!r} is already served by this process")
+        config = self.fleet.robot_config(name, settings)
+        keys = Keys(config.prefix, config.robot, config.ros)
+        clash = [r.name for r in self.robots.values() if r.keys.base == keys.base]
+        if clash:
+            raise ValueError(f"robot {clash[0]!r} already uses the keys {keys.base}/**")
+        if not check_robot_covered(keys, self.fleet.base.zenoh.zenoh_config, log):
+            raise ValueError(f"{keys.base} is not covered by the router's access control beside "
+                             f"{self.fleet.base.zenoh.zenoh_config} (logged): its messages would be dropped")
+        if fresh:
+            if config.state_dir == self.fleet.base.state_dir:
+                raise ValueError("fresh would delete the process's state directory: restart with --fresh instead")
+            shutil.rmtree(config.state_dir, ignore_errors=True)
+        robot = RobotServo(config, self.wakeup)
+        t0 = time.monotonic()
+        warmed = self._warm_up(robot) if self.warmup else 0.0
+        if self._session is not None:
+            robot.open(self._session)
+        self._schedule(robot)
+        self.changes.add(name, settings)
+        return {**self._summary(robot), "warmup_s": round(warmed, 3), "seconds": round(time.monotonic() - t0, 3)}
+
+    def _remove(self, name: str) -> dict[str, Any]:
+        robot = self.robots.get(name)
+        if robot is None:
+            raise ValueError(f"robot {name!r} is not served by this process; it serves {sorted(self.robots)}")
+        summary = self._summary(robot)
+        del self.robots[name]
+        self.scheduler.remove(name)
+        robot.close("removed from the process")
+        self.changes.remove(name, self.fleet.is_configured(name))
+        return summary
+
+    def _summary(self, robot: RobotServo) -> dict[str, Any]:
+        fair = self.scheduler.fairness[robot.name]
+        return {"robot": robot.name, "prefix": robot.config.prefix, "state": robot.pipeline.machine.state.value,
+                "state_dir": str(robot.store.dir), "counters": robot.current_counters().model_dump(),
+                "fairness": {"frames": fair.frames, "max_waited": fair.max_waited,
+                             "max_waited_one_robot": fair.max_waited_one_robot}}

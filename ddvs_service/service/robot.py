@@ -1,0 +1,467 @@
+"""One robot of a `ddvs serve` process: its keys, pipeline, state machine, persistence, watchdog, status, counters.
+
+`RobotServo` holds everything that belongs to one robot; the process (`service.process`) owns the Zenoh session and
+the loop thread and calls in: `open(session)` declares the robot's subscriptions, queryable, publishers and
+liveliness token, `handle_inputs()` runs its oldest pending command and adopts its newest camera info,
+`handle_frame(arrival)` serves one frame, `watchdog()` zeroes a standing twist when no frame *arrived* within
+`frame_timeout_s` (a slow frame while frames keep arriving is no timeout), `close(reason)` publishes a zero twist
+and undeclares everything. Zenoh callbacks only hand samples to the robot's `Inbox` and wake the loop.
+
+Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
+frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the robot keeps running, and
+so do the other robots of the process. Never stale: the twist of frame k is withheld (and counted `stale`) when
+frames k+1 and k+2 arrived before it could go out — a newer frame's twist is about to follow. Frames in IDLE (no
+reference, none pending) are not answered. State (reference, servo state, intrinsics, run-time configuration
+changes) is persisted atomically in the robot's own state directory by a background writer (`BackgroundWriter`: no
+fsync on the loop thread); a restarted robot resumes from it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+from numpy.typing import NDArray
+
+from ddvs_service.camera import Intrinsics
+from ddvs_service.logs import fields
+from ddvs_service.protocol import (
+    Command,
+    Counters,
+    Header,
+    InvalidMessage,
+    Keys,
+    Latency,
+    ProtocolError,
+    Reply,
+    Roi,
+    StateSnapshot,
+    Status,
+    Time,
+    TwistStamped,
+    decode_camera_info,
+    decode_image,
+    dump,
+    encode_image,
+    encode_twist_stamped,
+    image_from_array,
+    parse_command,
+)
+from ddvs_service.protocol.control import PROCESS_OPS
+from ddvs_service.protocol.endpoints import Endpoints
+from ddvs_service.service.config import IntrinsicsConfig, ServiceConfig, deep_merge
+from ddvs_service.service.inbox import Arrival, Inbox, Wakeup
+from ddvs_service.service.persistence import BackgroundWriter, StateStore
+from ddvs_service.service.pipeline import ServoPipeline, StepResult
+from ddvs_service.service.residual_publisher import ResidualPublisher
+from ddvs_service.service.ros_commands import declare_command_services
+from ddvs_service.service.state import ServoState, TransitionError
+
+log = logging.getLogger("ddvs.serve")
+ZERO6 = np.zeros(6)
+RESUMING_STATES = (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
+STALE_AFTER = 2  # a frame's twist is stale once this many newer frames have arrived
+NOT_PERSISTED = ("zenoh", "state_dir")  # configuration that comes from the command line, never from the state
+
+
+class RobotServo:
+    """One robot's servo. `wakeup`: the loop's shared wake-up (a new one when this robot has the loop to itself)."""
+
+    def __init__(self, config: ServiceConfig, wakeup: Wakeup | None = None) -> None:
+        self.store = StateStore(config.state_dir)
+        state = self.store.load_json("state.json") or {}
+        self._config_changes: dict[str, Any] = state.get("config_changes") or {}
+        self.config = self._with_persisted_changes(config)
+        self.keys = Keys(self.config.prefix, self.config.robot, self.config.ros)
+        self.pipeline = ServoPipeline(self.config, self._known_intrinsics(state))
+        self.counters = {"frames": 0, "rejected": 0, "stale": 0, "idle": 0}
+        self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
+        self._resume_state: ServoState | None = None
+        self._reference_stamp_ns: int | None = None
+        self._zero_sent = True
+        self._seq = 0
+        self._last_status: Status | None = None
+        self._persisted_rho: list[float] = []
+        self.inbox = Inbox(wakeup=wakeup)
+        self._zenoh: _Declared | None = None
+        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float]] | None = None
+        self.writer = BackgroundWriter(self.store)
+        self._restore(state)
+        self._persist_config()
+
+    # --- persistence --------------------------------------------------------------------------------------------
+    def _with_persisted_changes(self, given: ServiceConfig) -> ServiceConfig:
+        """The given configuration (file and command line) with the changes made at run time applied again."""
+        if not self._config_changes:
+            return given
+        try:
+            config = given.merged(self._config_changes)
+        except ValueError as exc:
+            log.error("persisted configuration changes no longer apply to the given configuration; dropped",
+                      extra=fields(changes=self._config_changes, error=str(exc)))
+            self._config_changes = {}
+            return given
+        log.info("applied the configuration changes made at run time",
+                 extra=fields(changes=self._config_changes, path=str(self.store.dir)))
+        return config
+
+    def _known_intrinsics(self, state: dict[str, Any]) -> Intrinsics | None:
+        """Configured intrinsics, else those of the last camera info (persisted), else None (wait for one)."""
+        if self.config.intrinsics is not None:
+            return self.config.intrinsics.to_intrinsics()
+        if state.get("intrinsics"):
+            return IntrinsicsConfig.model_validate(state["intrinsics"]).to_intrinsics()
+        return None
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        reference = self.store.load_reference()
+        if reference is None:
+            return
+        roi = tuple(state["roi"]) if state.get("roi") else None
+        self._reference_stamp_ns = state.get("reference_stamp_ns")
+        self._resume_state = ServoState(state.get("state", "READY"))
+        self._restored_reference = (reference, roi, state.get("rho_coeffs") or [])
+        self._try_adopt_restored()
+
+    def _try_adopt_restored(self) -> None:
+        restored = self._restored_reference
+        if restored is None or self.pipeline.intrinsics is None:
+            return
+        reference, roi, rho_coeffs = restored
+        self._restored_reference = None
+        try:
+            self.pipeline.set_reference(reference, roi, rho_coeffs=rho_coeffs)
+        except ValueError as exc:
+            log.error("persisted reference not usable", extra=fields(error=str(exc)))
+            return
+        if self._resume_state in RESUMING_STATES:
+            self.pipeline.machine.start()
+        elif self._resume_state == ServoState.STOPPED:
+            self.pipeline.machine.stop()
+        log.info("resumed persisted reference", extra=fields(state=self.pipeline.machine.state.value, roi=roi))
+
+    def _persist_state(self) -> None:
+        intr = self.pipeline.intrinsics
+        self.writer.put_json("state.json", {
+            "state": self.pipeline.machine.state.value,
+            "roi": list(self.pipeline.roi) if self.pipeline.roi else None,
+            "reference_stamp_ns": self._reference_stamp_ns,
+            "rho_coeffs": self.pipeline.rho_coeffs,
+            "intrinsics": None if intr is None else {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                                                     "width": intr.width, "height": intr.height},
+            "config_changes": self._config_changes,
+        })
+
+    def _persist_config(self) -> None:
+        self.writer.put_json("config.json", self.config.model_dump(mode="json", exclude=set(NOT_PERSISTED)))
+
+    # --- the robot on the process's session --------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return self.config.robot
+
+    def open(self, session: zenoh.Session) -> None:
+        """Declare this robot's endpoints on `session` (from the loop thread) and announce it."""
+        k = self.keys
+        inbox = self.inbox
+        ends = Endpoints(session, k, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
+        ends.subscriber("camera_image", inbox.on_frame)  # `ends` holds its subscriptions until `ends.close()`
+        ends.subscriber("camera_info", inbox.on_info)
+        commands = session.declare_queryable(k.key("servo_command"), inbox.on_query)
+        if k.rmw:
+            declare_command_services(ends, inbox.on_query)
+        self._pub = {name: ends.publisher(name)
+                     for name in ("servo_twist", "servo_status", "servo_state", "servo_config", "servo_reference")}
+        self._residual = ResidualPublisher(ends.publisher("servo_residual"))
+        token = session.liveliness().declare_token(k.key("liveliness"))
+        self._zenoh = _Declared(ends, commands, token)
+        log.info("serving", extra=fields(robot=self.config.robot, prefix=self.config.prefix,
+                                          state=self.pipeline.machine.state.value, state_dir=str(self.store.dir)))
+        self._publish_config()
+        self._publish_state("started")
+
+    def close(self, reason: str) -> None:
+        """Zero twist, a last state naming `reason`, every endpoint undeclared, pending writes flushed."""
+        try:
+            if self._zenoh is not None:
+                self._publish_twist(ZERO6, Time.now())
+                self._publish_state(f"stopped: {reason}")
+                self._zenoh.token.undeclare()
+                self._residual.close()
+                self._zenoh.commands.undeclare()
+                self._zenoh.ends.close()
+                self._zenoh = None
+                log.info("robot stopped", extra=fields(robot=self.config.robot, reason=reason,
+                                                        **self.current_counters().model_dump(),
+                                                        received=self.inbox.frames_received))
+        finally:
+            self.writer.close()
+
+    def wait_timeout(self, longest_s: float) -> float:
+        """Seconds the loop may sleep for this robot: until its watchdog is due while a non-zero twist stands,
+        `longest_s` at most."""
+        if self._zero_sent:
+            return longest_s
+        due = self.inbox.last_arrival_t + self.config.frame_timeout_s - time.monotonic()
+        return min(max(due, 0.0), longest_s)
+
+    def handle_inputs(self) -> None:
+        """The oldest pending command, then the newest camera info."""
+        self._handle_query(self.inbox.take_query())
+        self._handle_info(self.inbox.take_info())
+
+    # --- inputs -------------------------------------------------------------------------------------------------
+    def _handle_info(self, sample: zenoh.Sample | None) -> None:
+        if sample is None or self.config.intrinsics is not None:
+            return  # configured intrinsics take precedence over camera info
+        try:
+            intrinsics = decode_camera_info(sample.payload.to_bytes()).to_intrinsics()
+            if intrinsics == self.pipeline.intrinsics:
+                return
+            self.pipeline.set_intrinsics(intrinsics)
+            self._try_adopt_restored()
+            self._persist_state()
+        except (ProtocolError, ValueError) as exc:
+            self.counters["rejected"] += 1
+            log.warning("camera info rejected", extra=fields(error=str(exc)))
+
+    def handle_frame(self, arrival: Arrival[zenoh.Sample]) -> None:
+        """Serve one frame taken from this robot's inbox."""
+        if self.pipeline.machine.state == ServoState.IDLE and self._pending_reference is None:
+            self.counters["idle"] += 1  # nothing to servo to: no twist, no status
+            return
+        t_taken = time.monotonic()
+        try:
+            msg = decode_image(arrival.sample.payload.to_bytes(), max_bytes=self.config.max_frame_bytes)
+            image = _grey_view(msg.array, msg.encoding)
+        except (ProtocolError, ValueError) as exc:
+            self._reject_frame(f"frame rejected: {exc}")
+            return
+        t_decoded = time.monotonic()
+        if self._pending_reference is not None:
+            self._adopt_next_frame(image, msg.header.stamp.to_ns())
+        try:
+            step = self.pipeline.step(image)
+        except ValueError as exc:
+            self._reject_frame(f"frame rejected: {exc}")
+            return
+        self.counters["frames"] += 1
+        t_publish = time.monotonic()
+        newer = self.inbox.frames_received - arrival.index
+        stale = newer >= STALE_AFTER
+        if stale:
+            self.counters["stale"] += 1
+            step.message = f"stale: twist withheld, {newer} newer frames arrived while it was computed"
+        else:
+            self._publish_twist(step.twist, msg.header.stamp, msg.header.frame_id)
+        t_done = time.monotonic()
+        latency = {
+            "decode": (t_decoded - t_taken) * 1e3,
+            "registration": step.timings_ms.get("registration", 0.0),
+            "control": step.timings_ms.get("control", 0.0),
+            "publish": (t_done - t_publish) * 1e3,
+            "total": (t_done - arrival.t) * 1e3,
+        }
+        self._publish_status(step, msg.header.stamp.to_ns(), latency, stale)
+        self._residual.offer(msg.header, lambda: self.pipeline.residual(image))
+
+    def _reject_frame(self, message: str) -> None:
+        self.counters["rejected"] += 1
+        log.warning(message, extra=fields(rejected=self.counters["rejected"]))
+        self._publish_twist(ZERO6, Time.now())
+        state = self.pipeline.machine.state
+        self._emit_status(Status(robot=self.config.robot, state=state.value, frame_stamp_ns=0, seq=self._next_seq(),
+                                 error=[0.0] * 6, error_norm=0.0, iterations=0, residual_rms=0.0, inlier_ratio=0.0,
+                                 twist=[0.0] * 6, latency_ms=Latency(decode=0, registration=0, control=0, publish=0,
+                                                                     total=0),
+                                 counters=self.current_counters(), message=message[:500]))
+
+    def _adopt_next_frame(self, image: NDArray, stamp_ns: int) -> None:
+        assert self._pending_reference is not None
+        _, roi = self._pending_reference
+        self._pending_reference = None
+        try:
+            self._set_reference(image, roi, stamp_ns, G0=np.eye(3))
+        except ValueError as exc:
+            log.error("reference from the next frame refused", extra=fields(error=str(exc)))
+
+    def watchdog(self) -> None:
+        """A zero twist when no frame arrived within `frame_timeout_s` while a non-zero twist stands."""
+        if self._zero_sent or time.monotonic() - self.inbox.last_arrival_t < self.config.frame_timeout_s:
+            return
+        log.warning("no frame within the timeout: zero twist", extra=fields(timeout_s=self.config.frame_timeout_s))
+        self._publish_twist(ZERO6, Time.now())
+
+    # --- commands -----------------------------------------------------------------------------------------------
+    def _handle_query(self, query: zenoh.Query | None) -> None:
+        if query is None:
+            return
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            reply = self.handle_command(payload)
+            query.reply(query.key_expr, dump(reply))
+        finally:
+            query.drop()
+
+    def handle_command(self, payload: bytes) -> Reply:
+        """Execute one JSON command; any failure is a `Reply.failure` naming the problem, with state unchanged."""
+        try:
+            command = parse_command(payload)
+        except (InvalidMessage, ProtocolError) as exc:
+            log.warning("command rejected", extra=fields(robot=self.config.robot, error=str(exc)))
+            return Reply.failure(str(exc))
+        if command.op in PROCESS_OPS:
+            return Reply.failure(f"{command.op} is a command of the serving process: send it to the process's key "
+                                 "<prefix>/serve/<process>/command, not to a robot's servo/command")
+        try:
+            data = self._execute(command)
+        except (TransitionError, ValueError, ProtocolError) as exc:
+            log.warning("command refused", extra=fields(op=command.op, id=command.id, error=str(exc)))
+            return Reply.failure(f"{command.op}: {exc}")
+        log.info("command executed", extra=fields(op=command.op, id=command.id,
+                                                    state=self.pipeline.machine.state.value))
+        return Reply.success(data)
+
+    def _execute(self, command: Command) -> dict[str, Any] | None:
+        machine = self.pipeline.machine
+        op = command.op
+        if op == "get_state":
+            return self._snapshot().model_dump(mode="json")
+        if op == "get_config":
+            return self.config.model_dump(mode="json", exclude={"zenoh"})
+        if op == "set_config":
+            assert command.config is not None
+            renamed = [key for key in ("prefix", "robot") if command.config.get(key, getattr(self.config, key))
+                       != getattr(self.config, key)]
+            if renamed:
+                raise ValueError(f"{' and '.join(renamed)} name the robot's keys and cannot change while it is "
+                                 "served: remove_robot, then add_robot under the new name")
+            new = self.config.merged(command.config, self.pipeline.intrinsics)
+            self.pipeline.apply_config(new)
+            self.config = new
+            changes = {key: value for key, value in command.config.items() if key not in NOT_PERSISTED}
+            self._config_changes = deep_merge(self._config_changes, changes)
+            self._persist_state()
+            self._persist_config()
+            self._publish_config()
+            return new.model_dump(mode="json", exclude={"zenoh"})
+        if op == "set_reference":
+            roi = _roi_tuple(command.roi)
+            if command.source == "upload":
+                assert command.image is not None
+                self._set_reference(command.image.to_array(), roi, time.time_ns(), G0=None)
+                return self._snapshot().model_dump(mode="json")
+            self._pending_reference = ("next_frame", roi)
+            return {"pending": "the next camera frame becomes the reference"}
+        if op == "start":
+            machine.start()
+        elif op == "stop":
+            machine.stop()
+            self._publish_twist(ZERO6, Time.now())
+        elif op == "reset":
+            self.pipeline.clear_reference()
+            self.writer.remove_reference()
+            self._reference_stamp_ns = None
+            self._publish_twist(ZERO6, Time.now())
+        self._persist_state()
+        self._publish_state(f"{op} command")
+        return self._snapshot().model_dump(mode="json")
+
+    def _set_reference(self, image: NDArray, roi: tuple[int, int, int, int] | None, stamp_ns: int,
+                       G0: NDArray | None) -> None:
+        roi_used = self.pipeline.set_reference(image, roi, G0=G0)
+        self._reference_stamp_ns = stamp_ns
+        reference = np.ascontiguousarray(image)
+        self.writer.put_reference(reference.copy())
+        self._persist_state()
+        if reference.dtype == np.uint8 and reference.ndim == 2:
+            self._pub["servo_reference"].put(encode_image(image_from_array(reference, "mono8")))
+        self._publish_state(f"reference set, roi {list(roi_used)}")
+
+    # --- outputs ------------------------------------------------------------------------------------------------
+    def _publish_twist(self, twist: NDArray[np.float64], stamp: Time, frame_id: str = "camera") -> None:
+        if not np.all(np.isfinite(twist)):
+            log.error("non-finite twist replaced by zero", extra=fields(twist=list(twist)))
+            twist = ZERO6
+        msg = TwistStamped(Header(stamp, frame_id), np.asarray(twist[:3]), np.asarray(twist[3:]))
+        self._pub["servo_twist"].put(encode_twist_stamped(msg))
+        self._zero_sent = not np.any(twist)
+
+    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool) -> None:
+        """The frame's `Status`: every frame with `status_every_frame`, else on a state change or a stale twist."""
+        previous = self._last_status.state if self._last_status else None
+        changed = previous != step.state.value
+        if self.config.status_every_frame or changed or stale:
+            self._emit_status(Status(
+                robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
+                error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
+                residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
+                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self.current_counters(),
+                message=step.message[:500],
+            ))
+        if changed or self.pipeline.rho_coeffs != self._persisted_rho:
+            self._persisted_rho = list(self.pipeline.rho_coeffs)
+            self._persist_state()
+            self._publish_state(step.message or "frame")
+
+    def _emit_status(self, status: Status) -> None:
+        self._last_status = status
+        self._pub["servo_status"].put(dump(status))
+
+    def _publish_state(self, message: str) -> None:
+        self._pub["servo_state"].put(dump(self._snapshot(message)))
+
+    def _publish_config(self) -> None:
+        self._pub["servo_config"].put(dump_json(self.config.model_dump(mode="json", exclude={"zenoh"})))
+
+    def _snapshot(self, message: str = "") -> StateSnapshot:
+        G = self.pipeline.G
+        roi = self.pipeline.roi
+        return StateSnapshot(
+            robot=self.config.robot, state=self.pipeline.machine.state.value,
+            has_reference=self.pipeline.reference is not None, reference_stamp_ns=self._reference_stamp_ns,
+            roi=None if roi is None else Roi(x=roi[0], y=roi[1], width=roi[2], height=roi[3]),
+            homography=None if G is None else [float(x) for x in (G / G[2, 2]).reshape(-1)],
+            last_status=self._last_status, message=message[:500],
+        )
+
+    def current_counters(self) -> Counters:
+        """The counters of `Status.counters` now."""
+        return Counters(dropped=self.inbox.frames_superseded, **self.counters)
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+
+@dataclass(frozen=True)
+class _Declared:
+    """What `open` declared on the session (undeclared by `close`)."""
+
+    ends: Endpoints
+    commands: zenoh.Queryable[None]
+    token: zenoh.LivelinessToken
+
+
+def dump_json(obj: dict[str, Any]) -> bytes:
+    return json.dumps(obj).encode()
+
+
+def _roi_tuple(roi: Roi | None) -> tuple[int, int, int, int] | None:
+    return None if roi is None else (roi.x, roi.y, roi.width, roi.height)
+
+
+def _grey_view(array: NDArray, encoding: str) -> NDArray:
+    """Grey pixels for the engine: mono images as they are (a view), colour converted (BT.601)."""
+    if array.ndim == 2:
+        if encoding == "mono16":
+            return array.astype(np.float32) * (255.0 / 65535.0)
+        return array
+    if encoding.startswith("rgb"):
+        array = array[..., 2::-1]
+    return array
