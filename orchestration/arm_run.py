@@ -60,7 +60,10 @@ class ChildLaunch:
 @dataclass(frozen=True)
 class ArmRunSettings:
     """`law` dvs | dvs_reduced | ddvs; `template` (w, h) pixels centred on p*; `clock` of the sim; `fps` frames per
-    second; `gain` λ (1/s, Sec. 4: 0.4); `stop_threshold` on the error norm (Sec. 4: 1e-3); limits: `max_images`
+    second; `gain` λ (1/s, Sec. 4: 0.4); `stop_threshold` on the error norm (Sec. 4: 1e-3); `gain_grid` (rows,
+    cols) of the registration's gain surface (None: the service's default; the arm's light is uniform, so one gain is
+    its exact model, and on a 70×70 template the 3×3 surface biases the weakly seen tilt: README "Servoing");
+    limits: `max_images`
     processed while servoing, `time_limit` seconds of wall time for the whole run; `settle_images` CONVERGED
     images required before finishing; `robot`/`prefix` of the keys; `launch` per child name how it starts
     (default: loopback mesh, this interpreter); `driver_session` the `SessionConfig` fields of this process's session
@@ -75,6 +78,7 @@ class ArmRunSettings:
     fps: float = 30.0
     gain: float = 0.4
     stop_threshold: float = 1e-3
+    gain_grid: tuple[int, int] | None = None
     max_images: int = 2000
     time_limit: float = 600.0
     settle_images: int = 5
@@ -157,7 +161,8 @@ def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> dict
         "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{listen}"], "connect": [f"tcp/127.0.0.1:{sim_port}"]},
         "state_dir": str(settings.out_dir / "state"),
         # levels 3: the pyramid of the measured arm runs (the service's default is the engine's, 8 at most)
-        "registration": {"template_size": list(settings.template), "levels": 3, "global_init": True},
+        "registration": {"template_size": list(settings.template), "levels": 3, "global_init": True,
+                         **({} if settings.gain_grid is None else {"gain_grid": list(settings.gain_grid)})},
         "control": {"law": settings.law, "gains": settings.gain, "stop_threshold": settings.stop_threshold},
         "ros": {"domain_id": settings.ros_domain_id},
     }
@@ -289,7 +294,8 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
         run = ArmRun(settings, stack, commands, session, started)
         meta = {"reference_pose": T_world_ref.reshape(-1).tolist(), "law": settings.law,
                 "template": list(settings.template), "clock": settings.clock, "fps": settings.fps,
-                "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene)}
+                "gain": settings.gain, "stop_threshold": settings.stop_threshold, "scene": str(settings.scene),
+                "gain_grid": None if settings.gain_grid is None else list(settings.gain_grid)}
         writer = BagWriter(out / "recording", run_channels(run.keys), recording_meta(run.keys, meta))
         (out / "foxglove-layout.json").write_text(layout_json(run.keys), encoding="utf-8")
         stack.callback(writer.close)
