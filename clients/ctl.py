@@ -7,6 +7,10 @@ parsed as a `Reply` (docs/protocol.md). Exit status: 0 when the reply is ok, 1 w
 Actions: `set-reference (--next-frame | --image FILE) [--roi X Y W H]`, `start`, `stop`, `reset`, `state`,
 `config get`, `config set (--set key.path=value ... | --file JSON)`. `--set` values are parsed as JSON when they
 are valid JSON (numbers, true/false, lists, objects) and kept as strings otherwise.
+
+Process actions (one `ddvs serve` serving several robots) go to the process's key
+`<prefix>/serve/<process>/command` (`--process`, default the `--robot` name: a process is named after its first
+robot): `add-robot NAME [--set key.path=value ... | --file JSON] [--fresh]`, `remove-robot NAME`, `robots`.
 """
 
 from __future__ import annotations
@@ -68,25 +72,47 @@ def command_from_args(args: argparse.Namespace) -> Command:
         return Command(op=action)
     if action == "state":
         return Command(op="get_state")
+    if action == "robots":
+        return Command(op="list_robots")
+    if action == "remove-robot":
+        return Command(op="remove_robot", robot=args.name)
+    if action == "add-robot":
+        return Command(op="add_robot", robot=args.name, config=_patch(args) or None, fresh=args.fresh)
     if args.config_action == "get":
         return Command(op="get_config")
-    if args.file is not None:
-        patch = json.loads(Path(args.file).read_text(encoding="utf-8"))
-        if not isinstance(patch, dict):
-            raise ValueError(f"{args.file} holds a JSON {type(patch).__name__}; expected an object")
-    else:
-        patch = dotted_patch(args.set or [])
+    patch = _patch(args)
     if not patch:
         raise ValueError("config set needs --set key.path=value (repeatable) or --file JSON")
     return Command(op="set_config", config=patch)
 
 
-def send_command(session: zenoh.Session, keys: Keys, command: Command, timeout: float = 5.0) -> Reply | None:
-    """Query the service with `command`; its `Reply`, a failure `Reply` for a Zenoh error reply or an unparsable
-    answer, or None when nothing answered within `timeout` seconds."""
+def _patch(args: argparse.Namespace) -> dict[str, Any]:
+    """The configuration patch of `--file JSON` or of the `--set` assignments (empty without either)."""
+    if args.file is None:
+        return dotted_patch(args.set or [])
+    patch = json.loads(Path(args.file).read_text(encoding="utf-8"))
+    if not isinstance(patch, dict):
+        raise ValueError(f"{args.file} holds a JSON {type(patch).__name__}; expected an object")
+    return patch
+
+
+def command_key(keys: Keys, command: Command, process: str | None = None) -> str:
+    """Where `command` goes: the robot's `servo/command`, or for a process command the key of `process` (default:
+    the robot's name, the default name of a process whose first robot it is)."""
+    from ddvs_service.protocol.control import PROCESS_OPS, process_command_key
+
+    if command.op in PROCESS_OPS:
+        return process_command_key(keys.prefix, process or keys.robot)
+    return keys.servo_command
+
+
+def send_command(session: zenoh.Session, keys: Keys, command: Command, timeout: float = 5.0,
+                 process: str | None = None) -> Reply | None:
+    """Query the service with `command` (on `command_key`); its `Reply`, a failure `Reply` for a Zenoh error reply
+    or an unparsable answer, or None when nothing answered within `timeout` seconds."""
     from ddvs_service.protocol import InvalidMessage, Reply, dump, parse_message
 
-    for answer in session.get(keys.servo_command, payload=dump(command), timeout=timeout):
+    for answer in session.get(command_key(keys, command, process), payload=dump(command), timeout=timeout):
         sample = answer.ok
         if sample is None:  # then the answer is a Zenoh error reply
             error = "" if answer.err is None else answer.err.payload.to_string()
@@ -104,6 +130,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the reply (default 5)")
     parser.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     parser.add_argument("--robot", default="robot0", help="robot name in the keys (default robot0)")
+    parser.add_argument("--process", help="the serving process's name, for add-robot, remove-robot and robots "
+                                          "(default: the --robot name)")
     add_zenoh_arguments(parser)
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     ref = actions.add_parser("set-reference", help="set the reference image I* (next camera frame or a file)")
@@ -118,8 +146,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     config = actions.add_parser("config", help="get or set the service configuration")
     config_actions = config.add_subparsers(dest="config_action", metavar="get|set", required=True)
     config_actions.add_parser("get", help="print the configuration")
-    config_set = config_actions.add_parser("set", help="change part of the configuration")
-    patch = config_set.add_mutually_exclusive_group(required=True)
+    _add_patch_arguments(config_actions.add_parser("set", help="change part of the configuration"), required=True)
+    add = actions.add_parser("add-robot", help="serve one more robot in the process (process command)")
+    add.add_argument("name", help="the robot's name in its keys")
+    _add_patch_arguments(add, required=False)
+    add.add_argument("--fresh", action="store_true", help="delete the robot's persisted state first")
+    actions.add_parser("remove-robot", help="stop serving a robot (process command)").add_argument(
+        "name", help="the robot's name")
+    actions.add_parser("robots", help="list the process's robots (process command)")
+
+
+def _add_patch_arguments(parser: argparse.ArgumentParser, required: bool) -> None:
+    patch = parser.add_mutually_exclusive_group(required=required)
     patch.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="one setting (repeatable)")
     patch.add_argument("--file", type=Path, help="JSON file with a (partial) configuration object")
 
@@ -134,10 +172,10 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_REFUSED
     keys = Keys(args.prefix, args.robot)
     with open_session(session_config_from_args(args)) as session:
-        reply = send_command(session, keys, command, args.timeout)
+        reply = send_command(session, keys, command, args.timeout, args.process)
     if reply is None:
-        print(f"ddvs ctl: no reply on {keys.servo_command} within {args.timeout} s (is `ddvs serve` running and "
-              "reachable with these Zenoh settings?)", file=sys.stderr)
+        print(f"ddvs ctl: no reply on {command_key(keys, command, args.process)} within {args.timeout} s (is "
+              "`ddvs serve` running and reachable with these Zenoh settings?)", file=sys.stderr)
         return EXIT_NO_REPLY
     print(reply.model_dump_json(indent=2))
     return EXIT_OK if reply.ok else EXIT_REFUSED

@@ -8,7 +8,10 @@ tests/test_service_node.py, whose frames (a photograph warped by known motions) 
 
 from __future__ import annotations
 
+import argparse
 import json
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -20,7 +23,8 @@ import pytest
 from conftest import free_port
 from test_service_node import Operator, Service, converge, scene, service_config, shifted
 
-from ddvs_service.protocol import Command, Reply, dump, encode_image, image_from_array
+from clients.ctl import EXIT_OK, EXIT_REFUSED, add_arguments, command_from_args, command_key
+from ddvs_service.protocol import Command, Keys, Reply, dump, encode_image, image_from_array
 from ddvs_service.protocol.control import process_command_key
 from ddvs_service.service.fleet_config import FleetChanges, FleetConfig, read_file
 from ddvs_service.service.inbox import Inbox, Wakeup
@@ -163,6 +167,25 @@ def test_fleet_configuration_and_state_directories(tmp_path: Path) -> None:
     writer.close()
 
 
+def test_ctl_process_actions_map_to_process_commands(tmp_path: Path) -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    (tmp_path / "b.json").write_text(json.dumps({"control": {"gains": 0.3}}))
+    add = command_from_args(parser.parse_args(["add-robot", "b", "--file", str(tmp_path / "b.json"), "--fresh"]))
+    assert (add.op, add.robot, add.config, add.fresh) == ("add_robot", "b", {"control": {"gains": 0.3}}, True)
+    bare = command_from_args(parser.parse_args(["add-robot", "c"]))
+    assert (bare.config, bare.fresh) == (None, False)
+    set_add = command_from_args(parser.parse_args(["add-robot", "d", "--set", "intrinsics.fx=400"]))
+    assert set_add.config == {"intrinsics": {"fx": 400}}
+    remove = command_from_args(parser.parse_args(["remove-robot", "b"]))
+    assert (remove.op, remove.robot) == ("remove_robot", "b")
+    listing = command_from_args(parser.parse_args(["robots"]))
+    keys = Keys("lab", "a")
+    assert command_key(keys, listing) == "lab/serve/a/command"  # a process is named after its first robot
+    assert command_key(keys, listing, "cell") == "lab/serve/cell/command"
+    assert command_key(keys, Command(op="start")) == "lab/a/servo/command"
+
+
 # --- one process, several robots --------------------------------------------------------------------------------
 @pytest.mark.slow
 def test_robots_of_one_process_servo_independently_and_fairly(tmp_path: Path) -> None:
@@ -211,7 +234,8 @@ def test_robots_of_one_process_servo_independently_and_fairly(tmp_path: Path) ->
         assert robots["c"]["counters"]["rejected"] > 0  # garbage not superseded before its turn
         assert robots["a"]["counters"]["rejected"] == 0 and robots["b"]["counters"]["rejected"] == 0
         for name in ("a", "b"):
-            assert ops[name].command(op="get_state").data["state"] in ("SERVOING", "CONVERGED"), {s["message"] for s in ops[name].statuses if s["state"] == "LOST"}  # type: ignore[index]
+            lost = {s["message"] for s in ops[name].statuses if s["state"] == "LOST"}
+            assert ops[name].command(op="get_state").data["state"] in ("SERVOING", "CONVERGED"), lost  # type: ignore[index]
             assert ops[name].command(op="get_config").data["control"]["gains"] == 0.4  # type: ignore[index]
 
 
@@ -244,12 +268,20 @@ def test_robots_added_and_removed_at_run_time(tmp_path: Path) -> None:
             with pytest.raises(AssertionError, match="no reply"):
                 a.command(op="get_state", timeout=2.0)  # nothing answers on a's keys any more
             assert b.send(scene())["state"] == "CONVERGED"  # b goes on
-            listed = process_command(b, "cell", op="list_robots")
-            assert [r["robot"] for r in listed.data["robots"]] == ["b"]  # type: ignore[index]
+            listed = ctl(port, "--process", "cell", "robots")  # `ddvs ctl`, the operator's command line
+            assert listed.returncode == EXIT_OK, listed.stderr
+            assert [r["robot"] for r in json.loads(listed.stdout)["data"]["robots"]] == ["b"]
+            refused = ctl(port, "--process", "cell", "remove-robot", "a")
+            assert refused.returncode == EXIT_REFUSED and "not served" in refused.stdout
         finally:
             b.close()
     changes = json.loads((tmp_path / "state" / "robots.json").read_text())
     assert changes == {"added": {"b": {"control": {"gains": 0.3}}}, "removed": ["a"]}
+
+
+def ctl(port: int, *argv: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "ddvs.cli", "ctl", "--timeout", "30", "--connect", f"tcp/127.0.0.1:{port}", *argv]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
 
 
 def wait_ready_op(op: Operator, timeout: float = 30.0) -> None:
