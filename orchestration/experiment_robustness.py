@@ -4,8 +4,8 @@ runs on each frame), lockstep at 30 Hz.
 
 Targets (`TARGETS`):
 - "planar": the arm's poster set-up without the arm: f = 420 px, 320×240, a 1.2 m × 0.9 m textured plane 0.7 m in
-  front of the reference camera, the shipped service configuration `configs/serve/ur5_poster.json` (70×70 template
-  on the control point, planar model). Paper start: the real-data displacement t = [0.13, −0.23, −0.08] m,
+  front of the reference camera, the shipped service configuration `configs/serve/ur5_poster.json` (its template
+  size on the control point, 140×140, planar model). Paper start: the real-data displacement t = [0.13, −0.23, −0.08] m,
   r = [−20.3, 2.17, 14.59]° (276 mm, 25°).
 - "saddle": the synthetic experiment's set-up (f = 500 px, 550×418, horse saddle 1 m ahead), the same configuration
   with the general model and the paper's 200×150 ROI. Paper start: section IV-A's t, r.
@@ -132,7 +132,8 @@ class Target:
 def make_target(name: str) -> Target:
     if name == "planar":
         return Target(Intrinsics(420.0, 420.0, 159.5, 119.5, 320, 240), Plane(pose(np.eye(3), (0.0, 0.0, 0.7)),
-                      (1.2, 0.9)), (70, 70), "planar", pose(so3_exp(np.radians(ARM_R_DEG)), ARM_T))
+                      (1.2, 0.9)), ServiceConfig.from_file(SHIPPED_CONFIG).registration.template_size, "planar",
+                      pose(so3_exp(np.radians(ARM_R_DEG)), ARM_T))
     if name == "saddle":
         return Target(Intrinsics.centred(500.0, 550, 418), paper_saddle(1.0, 1.0), PAPER_ROI_SIZE, "general",
                       pose(so3_exp(PAPER_R), PAPER_T))
