@@ -66,6 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     help="freeflyer (default; every condition) or arm (the SAPIEN UR5, planar target: coarse "
                          "intrinsics, a dimming light, an occluding plate, latency, dropped frames; see "
                          "orchestration/experiment_robustness_arm.py)")
+    rp.add_argument("--scene", type=Path, help="arm only: scene file (default configs/arm/ur5_poster.json; "
+                                               "configs/arm/ur5_poster_graf.json: the free-flyer's texture)")
     rp.add_argument("--targets", nargs="+", choices=("planar", "saddle"), default=["planar"],
                     help="targets (default planar)")
     rp.add_argument("--laws", nargs="+", choices=("dvs", "ddvs"), default=["ddvs"], help="laws (default ddvs)")
@@ -88,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
         return run_arm_robustness_command(args)
     if args.experiment == "robustness":
         from orchestration.experiment_robustness import run_robustness_command
+
+        if args.scene is not None:
+            raise SystemExit("--scene is for the arm plant (--plant arm); the free-flyer's targets are --targets")
 
         args.out = args.out or Path("reports/robustness")
         return run_robustness_command(args)

@@ -2,14 +2,15 @@
 plate moved into view — and coarse intrinsics told to the service, on the paper's arm experiment.
 
 Plant: `sim.arm.ArmSim` with `configs/arm/ur5_poster.json` (UR5, camera on the flange, f = 420 px, 320×240, the
-poster 0.7 m in front of the reference camera), driven in process, lockstep at 30 Hz: each frame is rendered by
-SAPIEN, the service's per-frame code (`ServoPipeline`, the shipped `configs/serve/ur5_poster.json`: 70×70
-template on the control point, planar model) computes the twist, the bridge's map (`clients.bridge.TwistBridge`
-with `configs/arm/ur5_bridge.json`: damped least squares, joint velocity and position limits) turns it into joint
-velocities and SAPIEN integrates them for one period. The loop, its measures and verdicts, the table and plots are
-`orchestration.experiment_robustness`'s (`servo`, `summary_rows`, `write_report`); the journal is
-`orchestration.journal`'s. Ground truth: `sim.ground_truth` of the poster (a `Plane`) from the reference and
-current camera poses SAPIEN reports.
+poster 0.7 m in front of the reference camera, procedural texture; `--scene configs/arm/ur5_poster_graf.json`: the
+same poster with the free-flyer's "graf" texture, a path relative to the working directory), driven in process,
+lockstep at 30 Hz: each frame is rendered by SAPIEN, the service's per-frame code (`ServoPipeline`, the shipped
+`configs/serve/ur5_poster.json`: 70×70 template on the control point, planar model) computes the twist, the
+bridge's map (`clients.bridge.TwistBridge` with `configs/arm/ur5_bridge.json`: damped least squares, joint
+velocity and position limits) turns it into joint velocities and SAPIEN integrates them for one period. The loop,
+its measures and verdicts, the table and plots are `orchestration.experiment_robustness`'s (`servo`,
+`summary_rows`, `write_report`); the journal is `orchestration.journal`'s. Ground truth: `sim.ground_truth` of the
+poster (a `Plane`) from the reference and current camera poses SAPIEN reports.
 
 Conditions (`ARM_CONDITIONS`, the free-flyer's names): told intrinsics as in `experiment_robustness.CONDITIONS`
 (focal ×1.3, ×0.7, principal point 10 px off), twist latency and dropped frames as there, and two scene conditions
@@ -27,6 +28,7 @@ import argparse
 import copy
 import json
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -154,14 +156,15 @@ def arm_scene(condition: str, start: str, scene_path: Path = SCENE) -> tuple[Arm
     return replace(config, start=StartPose(config.start.target, config.start.T_target_ref, displacement)), target
 
 
-def run_arm_one(target: str, law: str, start: str, condition_name: str, settings: RobustnessSettings) -> Run:
+def run_arm_one(target: str, law: str, start: str, condition_name: str, settings: RobustnessSettings,
+                scene_path: Path = SCENE) -> Run:
     """One closed-loop run on the arm (`experiment_robustness.servo` with an `ArmPlant`); `target` "planar" (the
-    poster of the scene file)."""
+    poster of the scene file `scene_path`)."""
     if target != "planar" or condition_name not in ARM_CONDITIONS:
         raise ValueError(f"the arm runs the planar target under {list(ARM_CONDITIONS)}; got {target!r}, "
                          f"{condition_name!r}")
     condition = ARM_CONDITIONS[condition_name]
-    config, arm_target = arm_scene(condition_name, start)
+    config, arm_target = arm_scene(condition_name, start, scene_path)
     assert config.start is not None
     told = told_intrinsics(arm_target.camera, condition.told)
     service = service_config(arm_target, told, {"control": {"law": LAW_NAMES[law]}, **settings.overrides})
@@ -177,7 +180,8 @@ def run_arm_one(target: str, law: str, start: str, condition_name: str, settings
 
 
 def run_arm_robustness_command(args: argparse.Namespace) -> int:
-    """`ddvs experiment robustness --plant arm`: run or resume the arm's matrix, then the report's paths."""
+    """`ddvs experiment robustness --plant arm [--scene FILE]`: run or resume the arm's matrix, then the report's
+    paths."""
     if list(args.targets) != ["planar"]:
         raise ValueError(f"the arm's matrix has the planar poster only; got --targets {args.targets}")
     settings = RobustnessSettings(
@@ -188,7 +192,8 @@ def run_arm_robustness_command(args: argparse.Namespace) -> int:
     unknown = [c for c in settings.conditions if c not in ARM_CONDITIONS]
     if unknown:
         raise ValueError(f"conditions {unknown} are not rendered on the arm; expected some of {list(ARM_CONDITIONS)}")
-    runs = run_matrix(settings, args.out, log=True, one=run_arm_one)
+    scene = args.scene or SCENE
+    runs = run_matrix(settings, args.out, log=True, one=partial(run_arm_one, scene_path=scene))
     for path in write_report(runs, settings, args.out).values():
         print(path)
     return 0

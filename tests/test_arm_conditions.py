@@ -82,3 +82,25 @@ def test_scene_keys_for_light_and_occluders_are_parsed_and_checked() -> None:
     with pytest.raises(ValueError, match="occluder target index"):
         ArmSim(scene_config_from_dict({**base, "occluders": [{"width": 0.2, "height": 0.1, "t_start": 0.0,
                                                                "t_end": 1.0, "target": 3}]}))
+
+
+def test_a_short_arm_run_reports_its_measures() -> None:
+    from orchestration.experiment_robustness import RobustnessSettings
+    from orchestration.experiment_robustness_arm import run_arm_one
+
+    run = run_arm_one("planar", "ddvs", "paper", "focal_x1.3", RobustnessSettings(max_images=8))
+    assert run.outcome == "budget" and run.images == 8 and len(run.pose_errors_mm) == 8
+    assert run.translation_error_mm > 200.0  # it has only started: 276 mm at the paper's start
+    assert run.pose_errors_mm[-1] < run.pose_errors_mm[0]  # and it moves towards the goal
+    with pytest.raises(ValueError, match="not rendered on the arm|planar target"):
+        run_arm_one("planar", "ddvs", "paper", "specular", RobustnessSettings(max_images=8))
+
+
+def test_the_graf_scene_is_the_shipped_poster_with_the_free_flyers_texture() -> None:
+    from orchestration.arm_run import ROOT
+    from sim.textures import load_texture
+
+    config, _ = arm_scene("nominal", "paper", ROOT / "configs" / "arm" / "ur5_poster_graf.json")
+    shipped, _ = arm_scene("nominal", "paper")
+    assert config.targets[0].T_world_target.tolist() == shipped.targets[0].T_world_target.tolist()
+    np.testing.assert_array_equal(config.targets[0].texture_image(), load_texture("graf").astype(np.uint8))
