@@ -21,8 +21,10 @@ from typing import Any
 PAPER_IMAGES = {"dvs_reduced": 417, "dvs": 417, "ddvs": 309}
 LAW_NAMES = {"dvs_reduced": "DVS (reduced error (13))", "dvs": "DVS", "ddvs": "decoupled DVS (16)"}
 # The demo's template (issue 20): a 70×70 template sees the plane through ±4.8°, where a tilt of the estimate moves its
-# corners by 0.01 px per 3e-3 of the control error; 8-bit frames leave that tilt biased by 1–7e-3 near the goal and
-# the servo settles where the biased estimate reads zero (0.7–3 mm away). At 100×100 the bias is 3e-4.
+# corners by 0.01 px per 3e-3 of the control error. Near the goal its estimate of the decoupled error is off by 3–10e-3
+# at a given pose (deterministic; as much on float frames and on frames blurred further: the rendered frames' small
+# departures from a warped reference, not noise), so the servo settles where that biased estimate reads zero,
+# 0.7–3 mm away. At 100×100 the same error is 1e-3 and the servo settles 0.1–0.3 mm away (README "Servoing").
 DEMO_TEMPLATE = (100, 100)
 
 
