@@ -237,11 +237,14 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     assert status["state"] == "LOST", status
     assert not np.any(op.twists[-1])
 
-    for _ in range(2):  # target back in view: re-acquired, held still until 3 tracked frames confirm it
+    held = 0  # target back in view: re-acquired (in the background: frames answered meanwhile), held still until
+    for _ in range(2000):  # 3 tracked frames confirm it
         status = op.send(shifted(img, 2.0, 1.0))
-        assert status["state"] == "LOST" and not np.any(op.twists[-1]), status
-    status = op.send(shifted(img, 2.0, 1.0))
-    assert status["state"] in ("SERVOING", "CONVERGED"), status
+        if status["state"] != "LOST":
+            break
+        assert not np.any(op.twists[-1]), status
+        held += 1
+    assert status["state"] in ("SERVOING", "CONVERGED") and held >= 2, (held, status)
 
     assert op.command(op="stop").ok
     assert state_of(op) == "STOPPED"
@@ -317,7 +320,11 @@ def test_restart_resumes_persisted_state(tmp_path: Path) -> None:
         snapshot = op.command(op="get_state").data
         assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING"
         assert op.command(op="get_config").data["control"]["gains"] == 0.3
-        status = op.send(shifted(img, 5.0, 3.0))  # global initialisation, then servoing again
+        for _ in range(2000):  # global initialisation in the background (LOST, zero twist), then servoing again
+            status = op.send(shifted(img, 5.0, 3.0))
+            if status["state"] != "LOST":
+                break
+            assert not np.any(op.twists[-1]), status
         assert status["state"] == "SERVOING", status
 
 
@@ -354,7 +361,11 @@ def test_general_model_serves_a_planar_target(tmp_path: Path, interpolation: str
         assert op.command(op="set_reference", source="next_frame").ok
         op.send(img)
         assert op.command(op="start").ok
-        status = op.send(shifted(img, 4.0, -3.0, 2.0))
+        for _ in range(2000):  # the general tracker acquires globally (ρ* too): in the background, LOST meanwhile
+            status = op.send(shifted(img, 4.0, -3.0, 2.0))
+            if status["state"] != "LOST":
+                break
+            assert not np.any(op.twists[-1]), status
         assert status["state"] == "SERVOING", status
         assert np.linalg.norm(status["twist"]) > 0, status
         assert converge(op, img)["state"] == "CONVERGED"
