@@ -5,7 +5,7 @@ Plant: `sim.arm.ArmSim` with `configs/arm/ur5_poster.json` (UR5, camera on the f
 poster 0.7 m in front of the reference camera, procedural texture; `--scene configs/arm/ur5_poster_graf.json`: the
 same poster with the free-flyer's "graf" texture, a path relative to the working directory), driven in process,
 lockstep at 30 Hz: each frame is rendered by SAPIEN, the service's per-frame code (`ServoPipeline`, the shipped
-`configs/serve/ur5_poster.json`: 70×70 template on the control point, planar model) computes the twist, the
+`configs/serve/ur5_poster.json`: its template size on the control point, planar model) computes the twist, the
 bridge's map (`clients.bridge.TwistBridge` with `configs/arm/ur5_bridge.json`: damped least squares, joint
 velocity and position limits) turns it into joint velocities and SAPIEN integrates them for one period. The loop,
 its measures and verdicts, the table and plots are `orchestration.experiment_robustness`'s (`servo`,
@@ -36,11 +36,13 @@ from numpy.typing import NDArray
 
 from clients.bridge import TwistBridge, load_bridge
 from ddvs_service.lie import pose_inv
+from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.pipeline import ServoPipeline
 from orchestration.arm_run import BRIDGE, SCENE
 from orchestration.experiment_robustness import (
     CONDITIONS,
     DT,
+    SHIPPED_CONFIG,
     RobustnessCondition,
     RobustnessSettings,
     Run,
@@ -60,21 +62,27 @@ from sim.surfaces import Plane
 from sim.textures import texture_path
 
 F64 = NDArray[np.float64]
-TEMPLATE = (70, 70)
 OCCLUDER_DEPTH_M = 0.15  # in front of the poster
 OCCLUDED_SHARE = 0.3  # of the template's columns, at the reference pose
 OCCLUDER_FRAMES = (100, 115)  # enters between these frames (as the free-flyer's `Occluder`)
 DIMMING_LIGHT = {"direction": [0.0, 0.0, -1.0], "ramp": {"gain": 1.0 / 3.0, "t_start": 0.0, "t_end": 10.0}}
 
 
-def occluder_plate(scene: dict) -> dict:
-    """The occluding plate of "occluder_stays" for `scene` (a scene mapping with a `start`): its right edge, seen
-    from the reference camera (fronto-parallel, `start.reference` = [0, 0, −d]), at the column
-    `cx − w/2 + OCCLUDED_SHARE · w` of the template box; `OCCLUDER_DEPTH_M` in front of the target."""
+def shipped_template() -> tuple[int, int]:
+    """The template size (w, h) of the shipped service configuration (`configs/serve/ur5_poster.json`)."""
+    w, h = ServiceConfig.from_file(SHIPPED_CONFIG).registration.template_size
+    return w, h
+
+
+def occluder_plate(scene: dict, template: tuple[int, int]) -> dict:
+    """The occluding plate of "occluder_stays" for `scene` (a scene mapping with a `start`) and a `template` (w, h)
+    centred on the principal point: its right edge, seen from the reference camera (fronto-parallel,
+    `start.reference` = [0, 0, −d]), at the column `cx − w/2 + OCCLUDED_SHARE · w` of the template box;
+    `OCCLUDER_DEPTH_M` in front of the target."""
     cam, start = scene["camera"], scene["start"]
     d = -float(start["reference"]["t"][2])
     z = d - OCCLUDER_DEPTH_M  # depth of the plate from the reference camera
-    edge_px = (OCCLUDED_SHARE - 0.5) * TEMPLATE[0]  # right edge from the principal point, pixels
+    edge_px = (OCCLUDED_SHARE - 0.5) * template[0]  # right edge from the principal point, pixels
     edge_m = edge_px / float(cam["fx"]) * z
     size = 0.5
     t0, t1 = (k * DT for k in OCCLUDER_FRAMES)
@@ -92,13 +100,13 @@ class ArmCondition:
     light: bool = False
     occluder: bool = False
 
-    def scene(self, base: dict) -> dict:
-        """`base` (a scene mapping) with this condition's light and occluder."""
+    def scene(self, base: dict, template: tuple[int, int]) -> dict:
+        """`base` (a scene mapping) with this condition's light and occluder (sized against `template`)."""
         out = copy.deepcopy(base)
         if self.light:
             out["light"] = DIMMING_LIGHT
         if self.occluder:
-            out["occluders"] = [*out.get("occluders", []), occluder_plate(base)]
+            out["occluders"] = [*out.get("occluders", []), occluder_plate(base, template)]
         return out
 
 
@@ -142,15 +150,18 @@ class ArmPlant:
         self.index += 1
 
 
-def arm_scene(condition: str, start: str, scene_path: Path = SCENE) -> tuple[ArmSceneConfig, Target]:
+def arm_scene(condition: str, start: str, scene_path: Path = SCENE,
+              template: tuple[int, int] | None = None) -> tuple[ArmSceneConfig, Target]:
     """The scene of `condition` from `start` ("paper": the scene file's displacement, or a domain-sweep start
-    "s<size>k<trial>") and the matrix's `Target` of it (camera, poster, template, planar model, start)."""
+    "s<size>k<trial>") and the matrix's `Target` of it (camera, poster, `template` (default the shipped one),
+    planar model, start)."""
+    template = template or shipped_template()
     base = json.loads(Path(scene_path).read_text(encoding="utf-8"))
-    config = scene_config_from_dict(ARM_CONDITIONS[condition].scene(base))
+    config = scene_config_from_dict(ARM_CONDITIONS[condition].scene(base, template))
     if config.start is None:
         raise ValueError(f"{scene_path} has no 'start' section: no reference pose to servo to")
     poster = config.targets[config.start.target]
-    target = Target(config.camera.intrinsics, Plane(poster.T_world_target, (poster.width, poster.height)), TEMPLATE,
+    target = Target(config.camera.intrinsics, Plane(poster.T_world_target, (poster.width, poster.height)), template,
                     "planar", config.start.T_ref_init)
     displacement = start_pose(target, start)
     return replace(config, start=StartPose(config.start.target, config.start.T_target_ref, displacement)), target
@@ -164,7 +175,9 @@ def run_arm_one(target: str, law: str, start: str, condition_name: str, settings
         raise ValueError(f"the arm runs the planar target under {list(ARM_CONDITIONS)}; got {target!r}, "
                          f"{condition_name!r}")
     condition = ARM_CONDITIONS[condition_name]
-    config, arm_target = arm_scene(condition_name, start, scene_path)
+    shipped = ServiceConfig.from_file(SHIPPED_CONFIG)
+    w, h = (shipped.merged(settings.overrides) if settings.overrides else shipped).registration.template_size
+    config, arm_target = arm_scene(condition_name, start, scene_path, (w, h))
     assert config.start is not None
     told = told_intrinsics(arm_target.camera, condition.told)
     service = service_config(arm_target, told, {"control": {"law": LAW_NAMES[law]}, **settings.overrides})
