@@ -55,7 +55,7 @@ class BackgroundReacquisition(Reacquisition):
     def busy(self) -> bool:
         """True while a search runs or a frame waits for one."""
         with self._cond:
-            return self._busy or self._frame is not None
+            return self._searching()
 
     def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
         """A finished search's result, or LOST while searching; `current` is searched next unless an OK result is
@@ -67,6 +67,7 @@ class BackgroundReacquisition(Reacquisition):
                 raise RuntimeError("re-acquisition is closed")
             result, self._result = self._result, None
             if result is not None and result.status == "OK":
+                self._frame = None  # the caller tracks from it: no search unless it asks again
                 self.adopted += 1
                 return result
             self._frame = (np.array(current, dtype=np.float32, copy=True),
@@ -101,12 +102,18 @@ class BackgroundReacquisition(Reacquisition):
         """Block until no search runs and no frame waits (True), or `timeout_s` passed (False). For tests and
         benchmarks, never in the servo loop."""
         with self._cond:
-            return self._cond.wait_for(lambda: not self._busy and self._frame is None, timeout_s)
+            return self._cond.wait_for(lambda: not self._searching(), timeout_s)
+
+    def _searching(self) -> bool:
+        """A search runs, or one will start on the frame left (none starts while a result waits to be handed over;
+        the condition's lock held)."""
+        return self._busy or (self._frame is not None and self._result is None)
 
     def _run(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._closed or self._frame is not None)
+                # a result not handed over yet comes first: the frame left meanwhile may not need a search
+                self._cond.wait_for(lambda: self._closed or (self._frame is not None and self._result is None))
                 if self._closed:
                     return
                 assert self._frame is not None
