@@ -1,8 +1,10 @@
 """Chooses the Taichi backend once per process.
 
-`init()` is idempotent: the first call picks the architecture (`cpu` by default, or `cuda` / `vulkan` when asked,
-or the `DDVS_TAICHI_ARCH` environment variable); later calls return the architecture already chosen and refuse a
-conflicting request, because Taichi cannot switch backend without invalidating every allocated field.
+`init()` is idempotent: the first call picks the architecture (`cpu` by default, or `cuda` / `vulkan` / `gpu` when
+asked, or the `DDVS_TAICHI_ARCH` environment variable; `ddvs serve --arch`); later calls return the architecture in
+use and refuse a conflicting request, because Taichi cannot switch backend without invalidating every allocated
+field. Taichi falls back to the CPU when the requested device is absent (it warns); `init` returns the architecture
+Taichi actually runs on (`cpu` then), so a caller can tell.
 """
 
 from __future__ import annotations
@@ -11,20 +13,23 @@ import ast
 import os
 
 import taichi as ti
+from taichi.lang import impl
 from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext
 
 _ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "gpu": ti.gpu}
-_chosen: str | None = None
+_chosen: str | None = None  # the backend Taichi runs on
+_requested: str | None = None  # what the first call asked for
 
 
 def init(arch: str | None = None) -> str:
-    """Initialise Taichi on `arch` ('cpu', 'cuda', 'vulkan' or 'gpu') once; return the architecture in use."""
-    global _chosen
+    """Initialise Taichi on `arch` ('cpu', 'cuda', 'vulkan' or 'gpu') once; return the architecture in use ('cpu',
+    'cuda', 'vulkan', …: Taichi's name of the backend it started, which differs from `arch` after a fallback)."""
+    global _chosen, _requested
     requested = arch or os.environ.get("DDVS_TAICHI_ARCH", "cpu")
     if requested not in _ARCHS:
         raise ValueError(f"unknown Taichi backend {requested!r}; expected one of {sorted(_ARCHS)}")
     if _chosen is not None:
-        if arch is not None and arch != _chosen:
+        if arch is not None and arch not in (_chosen, _requested):
             raise RuntimeError(f"Taichi already initialised on {_chosen!r}; cannot switch to {arch!r} in this process")
         return _chosen
     _brief_source_positions()
@@ -35,7 +40,9 @@ def init(arch: str | None = None) -> str:
         log_level=ti.WARN,
         debug=False,
     )
-    _chosen = requested
+    _requested = requested
+    started = impl.current_cfg().arch
+    _chosen = "cpu" if started == ti.cpu else started.name  # `ti.cpu` is the host's (x64, arm64)
     return _chosen
 
 

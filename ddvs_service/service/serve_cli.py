@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     parser.add_argument("--no-warmup", dest="warmup", action="store_false",
                         help="skip compiling the configuration's kernels before serving (the first frame pays)")
+    parser.add_argument("--arch", choices=["cpu", "cuda", "vulkan", "gpu"],
+                        help="Taichi backend of the kernels (default: $DDVS_TAICHI_ARCH, else cpu); Taichi falls back "
+                             "to the CPU when the device is absent, and the log says which one runs")
     parser.add_argument("--realtime-priority", type=int, metavar="1-99",
                         help="run under SCHED_FIFO at this priority (needs root or CAP_SYS_NICE)")
     add_zenoh_arguments(parser)
@@ -64,9 +67,11 @@ def run(args: argparse.Namespace) -> int:
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.fleet_config import FleetConfig, read_file
     from ddvs_service.service.process import ServeProcess
+    from kernels.backend import init
 
     setup_logging(args.log_level)
     log = logging.getLogger("ddvs.serve")
+    log.info("taichi backend", extra=fields(requested=args.arch or "default", running=init(args.arch)))
     try:
         base, robots, process = read_file(args.config) if args.config else (ServiceConfig(), None, None)
         update: dict[str, object] = {"zenoh": session_config_from_args(args, base=base.zenoh),
