@@ -93,3 +93,53 @@ def photometric_score(template: F32, sampled: F32, valid: F32, kappa: float = 0.
     if template.shape != sampled.shape or template.shape != valid.shape:
         raise ValueError(f"shapes differ: template {template.shape}, sampled {sampled.shape}, valid {valid.shape}")
     return photometric_scores(template, sampled[None], valid[None], kappa)[0]
+
+
+@dataclass(frozen=True)
+class OccludedScore:
+    """The match of the best-fitting `kept` fraction of the visible ROI pixels (`trimmed_score`): `cost` ∈ [0, 1] as
+    `cost_visible` over those pixels only, and `coherence` ∈ [0, 1] of the pixels left out — the mean, over them, of
+    the fraction of their `COHERENCE_BOX` neighbourhood also left out (about 1 for a foreign object covering part
+    of the ROI, lower for residuals scattered over the texture, as a wrong warp leaves)."""
+
+    cost: float
+    coherence: float
+    kept: float
+
+
+COHERENCE_BOX = 7  # pixels, side of the neighbourhood of `OccludedScore.coherence`
+
+
+def trimmed_score(template: F32, sampled: F32, valid: F32, kept: float, kappa: float = 0.5) -> OccludedScore:
+    """Score of one sampling (shapes as `photometric_score`) on the `kept` fraction of the visible pixels that the
+    affine photometric model fits best: the model is fitted on every visible pixel, then twice again on the `kept`
+    best of the previous fit (a foreign object's pixels must not set the gain), and the Geman–McClure cost of the
+    module docstring is averaged over the last `kept` set."""
+    if template.shape != sampled.shape or template.shape != valid.shape:
+        raise ValueError(f"shapes differ: template {template.shape}, sampled {sampled.shape}, valid {valid.shape}")
+    if not 0.0 < kept <= 1.0:
+        raise ValueError(f"kept must be in (0, 1], got {kept}")
+    visible = valid > 0.5
+    n_visible = int(visible.sum())
+    if n_visible < MIN_VISIBLE_PIXELS:
+        return OccludedScore(cost=1.0, coherence=0.0, kept=kept)
+    t = template.astype(np.float64)
+    c = sampled.astype(np.float64)
+    use = visible
+    n_keep = max(MIN_VISIBLE_PIXELS, round(kept * n_visible))
+    r = np.zeros_like(t)
+    for _ in range(3):
+        tm, cm = t[use].mean(), c[use].mean()
+        var_c = float(((c[use] - cm) ** 2).sum())
+        gain = max(float(((t[use] - tm) * (c[use] - cm)).sum()), 0.0) / var_c if var_c > 0 else 0.0
+        r = np.where(visible, np.abs(t - tm - gain * (c - cm)), np.inf)
+        cut = np.partition(r[visible], n_keep - 1)[n_keep - 1]
+        use = visible & (r <= cut)
+    x = r[use] / max(float(template.std()), 1e-6)
+    cost = float(np.mean(x * x / (x * x + kappa * kappa)))
+    out = (visible & ~use).astype(np.float32)
+    if not out.any():
+        return OccludedScore(cost=cost, coherence=1.0, kept=kept)
+    box = np.ones(COHERENCE_BOX) / COHERENCE_BOX
+    near = np.apply_along_axis(np.convolve, 0, np.apply_along_axis(np.convolve, 1, out, box, "same"), box, "same")
+    return OccludedScore(cost=cost, coherence=float(near[out > 0].mean()), kept=kept)
