@@ -19,12 +19,15 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
   - 8 sl(3) coordinates of a left increment `P ← N⁻¹ exp(Σ xᵢ Aᵢ) N P` (so `G ← M G`, `e ← M e`; `Aᵢ` =
     `ddvs_service.lie.SL3_GENERATORS`, `N` the normalisation `q = (p − c) / s` of the current-image point);
   - 3 epipole coordinates `e ← e + N⁻¹ δe'` (normalised units): `∂P = ρ N⁻¹ δe'`;
-  - when `with_rho`: one per parallax basis function `φ_k = Σ_m B_km x^i y^j`: `∂P = φ_k e δc_k`. On one row
-    (`y` fixed) `φ_k = Σ_i C_ki x^i` with `C_ki = Σ_j B_kij y^j`, so the pixel loop accumulates the `degree + 1`
-    columns `x^i ge` (`ge` the image derivative along `e`) instead of the `n_rho` columns `φ_k ge`, and each row's
-    sums are folded into the output layout through `C` (`_row_expansion`): 16 instead of 19 columns per pixel for
-    degree 2, 16 instead of 26 for degree 3 (what that saves: docs/performance.md);
-  - gain nodes `φ_gain · I(w)` and the bias 1 (as `kernels.planar_step`);
+  - when `with_rho`: one per parallax basis function `φ_k = Σ_m B_km x^i y^j`: `∂P = φ_k e δc_k`;
+  - gain nodes `φ_ij · I(w)` and the bias 1 (as `kernels.planar_step`).
+  The pixel loop accumulates a per-row layout whose size does not grow with the basis or the gain grid's rows: on one
+  row (`y` fixed) `φ_k = Σ_i C_ki x^i` with `C_ki = Σ_j B_kij y^j`, so it carries the `degree + 1` columns `x^i ge`
+  (`ge` the image derivative along `e`) instead of the `n_rho` columns `φ_k ge`, and `φ_ij = a_i(v) b_j(u)` (the
+  gain surface is separable), so it carries one column `b_j I(w)` per grid column instead of one per node.
+  `fold_row` expands each row's sums into the output layout through `C` and `a` in run-time loops. Before, the fold
+  and the node columns were unrolled (`ti.static`): the compiled code grew with the square of the column count and a
+  bicubic ρ* with a 3×3 gain grid compiled for minutes (figures: docs/performance.md);
 - reference pixels masked by the caller (`planar_step.MASKED`) get weight 0, as do warps whose 4×4 taps leave the
   image (branch-free: the accumulation loop has no ndarray store and no branch, so LLVM vectorises it);
 - robust weight and statistics exactly as `kernels.planar_step` (Huber/Tukey with a caller-given σ, valid and inlier
@@ -48,12 +51,14 @@ from kernels.planar_step import (
     INLIER_C,
     MAX_BANDS,
     N_STATS,
+    column_tents,
     finish_sums,
-    gain_at,
     hist_bin,
     reference_taps,
     robust_weight,
+    row_gains,
     store_band,
+    triangle_index,
 )
 from kernels.planar_step import PARAMS_GAINS as PLANAR_GAINS
 from kernels.planar_step import PARAMS_SPAN as PLANAR_SPAN
@@ -78,19 +83,8 @@ PARAMS_RHO = 52  # 16: monomial coefficients a_m of ρ*, m = i·(degree + 1) + j
 PARAMS_BASIS = 68  # n_rho × 16: basis coefficients B_km (same monomial order)
 N_GEOMETRIC = 8
 N_EPIPOLE = 3
+N_FIXED = N_GEOMETRIC + N_EPIPOLE  # columns that need no fold
 ROW_TILE = 128  # columns per tile of a band's row: the length of the thread-local |r| buffer
-
-
-def _row_expansion(a: int, n_rho: int, d1: int) -> tuple[tuple[int, int, int], ...]:
-    """Column `a` of the kernel's output layout as a combination of the per-row layout's columns, where the ρ*
-    columns `φ_k ge` are replaced by `x^i ge` (i < `d1`): `((a', k, i), …)`, the coefficient being 1 when `k < 0`,
-    else `Σ_j B_kij y^j` of the row (`row_basis[k, i]`)."""
-    first = N_GEOMETRIC + N_EPIPOLE
-    if a < first:
-        return ((a, -1, 0),)
-    if a < first + n_rho:
-        return tuple((first + i, a - first, i) for i in range(d1))
-    return ((a - n_rho + d1, -1, 0),)
 
 
 def _tri(i: int, j: int, n: int) -> int:
@@ -225,11 +219,12 @@ def warp_point(G: ti.template(), e: ti.template(), u: ti.i32, v: ti.i32, rho: ti
 
 @ti.func
 def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.template(), rho_coeffs: ti.template(),
-                span: ti.template(), gains: ti.template(), v: ti.i32, u: ti.i32, yp: ti.template(), bcx: ti.f32,
-                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_rows: ti.template(), grid_cols: ti.template(),
-                spline: ti.template(), domain: ti.template()):
+                span: ti.template(), h: ti.template(), v: ti.i32, u: ti.i32, yp: ti.template(), bcx: ti.f32,
+                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_cols: ti.template(), spline: ti.template(),
+                domain: ti.template()):
     """Everything one reference pixel `(u, v)` contributes, before the Jacobian: `(ok, r, I(w), ∂I/∂x, ∂I/∂y, x, y,
-    1/Z, ρ, ∂ρ/∂u, ∂ρ/∂v, x-powers, ∂I*/∂u, ∂I*/∂v, S, φ)` (`yp`: powers of the row's basis coordinate).
+    1/Z, ρ, ∂ρ/∂u, ∂ρ/∂v, x-powers, ∂I*/∂u, ∂I*/∂v, S, b)` (`yp`: powers of the row's basis coordinate; `h`, `b`:
+    the row's column gains and the column tents, `planar_step.row_gains` / `column_tents`).
 
     `ok` is false where a reference tap is masked, `Z ≤ 1e-8` or the 4×4 taps leave `cur` or the sample leaves
     `domain` (`cubic_sample`); the image values and
@@ -240,10 +235,80 @@ def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.
     x, y, iz, ok_z = warp_point(G, e, u, v, rho)
     c0, cgx, cgy, inside = cubic_sample(cur, x, y, spline, domain)
     ok = ref_ok & ok_z & (inside == 1)
-    gain, phi = gain_at(span, gains, ti.cast(u, ti.f32), ti.cast(v, ti.f32), grid_rows, grid_cols)
+    gain, b = column_tents(span, h, ti.cast(u, ti.f32), grid_cols)
     r = gain * c0 + beta - ir
     return (ok, ti.select(ok, r, 0.0), ti.select(ok, c0, 0.0), ti.select(ok, cgx, 0.0), ti.select(ok, cgy, 0.0), x, y,
-            iz, rho, rho_x / bs, rho_y / bs, xp, ti.select(ok, gxr, 0.0), ti.select(ok, gyr, 0.0), gain, phi)
+            iz, rho, rho_x / bs, rho_y / bs, xp, ti.select(ok, gxr, 0.0), ti.select(ok, gyr, 0.0), gain, b)
+
+
+N_PLAIN = N_FIXED + 1  # geometric and epipole columns and the bias: the same in both layouts
+
+
+@ti.func
+def _plain(f: ti.i32, n: ti.template()) -> ti.i32:
+    """Column of plain column `f` (< `N_PLAIN`) in a layout of `n` columns: the first `N_FIXED`, then the last."""
+    return ti.select(f < N_FIXED, f, n - 1)
+
+
+@ti.func
+def _sym(i: ti.i32, j: ti.i32, n: ti.template()) -> ti.i32:
+    """Upper-triangle index of entry `(i, j)` or `(j, i)` of a symmetric `n × n` matrix (`triangle_index`)."""
+    return triangle_index(ti.min(i, j), ti.max(i, j), n)
+
+
+@ti.func
+def fold_row(acc: ti.template(), row: ti.template(), row_basis: ti.template(), a_rows: ti.template(),
+             n_rho: ti.template(), n_x: ti.template(), grid_rows: ti.template(), grid_cols: ti.template()):
+    """Add one row's sums `row` (per-row layout: 11 geometric/epipole columns, `n_x` columns `x^i ge`, one column
+    `b_j I(w)` per gain-grid column, the bias) into `acc` (output layout: 11, `n_rho` ρ* columns, the R·C gain nodes
+    row-major, the bias) through `φ_k = Σ_i row_basis[k, i] x^i` and `φ_ij = a_i b_j` on this row (`a_rows`: the
+    row tents). Block by block, in run-time loops: the compiled code does not grow with the number of columns."""
+    C = ti.static(grid_cols)
+    NG = ti.static(grid_rows * grid_cols)
+    P = ti.static(N_FIXED + n_rho + NG + 1)
+    PR = ti.static(N_FIXED + n_x + grid_cols + 1)
+    NT = ti.static(P * (P + 1) // 2)
+    NTR = ti.static(PR * (PR + 1) // 2)
+    XR = ti.static(N_FIXED)  # first x^i column of the row
+    BR = ti.static(N_FIXED + n_x)  # first column-gain column of the row
+    SO = ti.static(N_FIXED + n_rho)  # first gain node of the output
+    for f in range(N_PLAIN):
+        fr = _plain(f, PR)
+        fo = _plain(f, P)
+        for g in range(f, N_PLAIN):
+            acc[triangle_index(fo, _plain(g, P), P)] += row[triangle_index(fr, _plain(g, PR), PR)]
+        for e in range(NG):
+            acc[_sym(fo, SO + e, P)] += row[_sym(fr, BR + e % C, PR)] * a_rows[e // C]
+        acc[NT + fo] += row[NTR + fr]
+    for e in range(NG):
+        for f in range(e, NG):
+            photo = row[_sym(BR + e % C, BR + f % C, PR)]
+            acc[triangle_index(SO + e, SO + f, P)] += photo * a_rows[e // C] * a_rows[f // C]
+        acc[NT + SO + e] += row[NTR + BR + e % C] * a_rows[e // C]
+    if ti.static(n_rho > 0):
+        for k in range(n_rho):
+            ro = N_FIXED + k
+            q = ti.Vector.zero(ti.f32, PR)  # Σ_i row_basis[k, i] · row[x^i, ·]: ρ* column k against the row's
+            for c in range(PR):
+                total = 0.0
+                for i in range(n_x):
+                    total += row[_sym(XR + i, c, PR)] * row_basis[k, i]
+                q[c] = total
+            for f in range(N_PLAIN):
+                acc[_sym(ro, _plain(f, P), P)] += q[_plain(f, PR)]
+            for e in range(NG):
+                acc[triangle_index(ro, SO + e, P)] += q[BR + e % C] * a_rows[e // C]
+            for l in range(k, n_rho):
+                total = 0.0
+                for i in range(n_x):
+                    total += q[XR + i] * row_basis[l, i]
+                acc[triangle_index(ro, N_FIXED + l, P)] += total
+            g_total = 0.0
+            for i in range(n_x):
+                g_total += row[NTR + XR + i] * row_basis[k, i]
+            acc[NT + ro] += g_total
+    for k in ti.static(range(N_STATS - 1)):
+        acc[NT + P + k] += row[NTR + PR + k]
 
 
 @ti.kernel
@@ -263,12 +328,12 @@ def general_step(
     the current image's cubic B-spline coefficients when `spline`, else the image itself (Keys interpolation)."""
     NR = ti.static(n_rho if with_rho else 0)
     NG = ti.static(grid_rows * grid_cols)
-    P = ti.static(N_GEOMETRIC + N_EPIPOLE + NR + NG + 1)
+    P = ti.static(N_FIXED + NR + NG + 1)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
     D1 = ti.static(degree + 1)
     NX = ti.static(D1 if with_rho else 0)  # per-row ρ* columns x^i ge (module docstring)
-    PR = ti.static(N_GEOMETRIC + N_EPIPOLE + NX + NG + 1)
+    PR = ti.static(N_FIXED + NX + grid_cols + 1)  # per-row layout
     NTR = ti.static(PR * (PR + 1) // 2)
     nb = ti.cast(params[PARAMS_BANDS], ti.i32)
     u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
@@ -302,15 +367,16 @@ def general_step(
             for v in range(first, v0 + (b + 1) * rows // nb):
                 racc = ti.Vector.zero(ti.f32, NTR + PR + N_STATS)  # this row's sums, per-row layout
                 yp = _powers((v - bcy) / bs, degree)
+                a_rows, h = row_gains(span, gains, ti.cast(v, ti.f32), grid_rows, grid_cols)
                 for tile in range((u1 - u0 + ROW_TILE) // ROW_TILE):
                     ut0 = u0 + tile * ROW_TILE
                     ut1 = ti.min(ut0 + ROW_TILE - 1, u1)
                     # Loads, register sums and stores into the thread-local `magnitude` only (no ndarray store,
                     # no branch): LLVM vectorises this loop.
                     for u in range(ut0, ut1 + 1):
-                        ok, r, c0, cgx, cgy, x, y, iz, rho, rho_u, rho_v, xp, gxr, gyr, gain, phi = pixel_terms(
-                            ref, cur, G, e, rho_coeffs, span, gains, v, u, yp, bcx, bs, beta, degree, grid_rows,
-                            grid_cols, spline, domain)
+                        ok, r, c0, cgx, cgy, x, y, iz, rho, rho_u, rho_v, xp, gxr, gyr, gain, bt = pixel_terms(
+                            ref, cur, G, e, rho_coeffs, span, h, v, u, yp, bcx, bs, beta, degree, grid_cols, spline,
+                            domain)
                         # A = ∂w/∂p*, columns from ∂P/∂u = G[:, 0] + ρ_u e and ∂P/∂v = G[:, 1] + ρ_v e
                         pxu = G[0] + rho_u * e[0]
                         pyu = G[3] + rho_u * e[1]
@@ -348,9 +414,9 @@ def general_step(
                         if ti.static(with_rho):
                             ge = (gx * (e[0] - x * e[2]) + gy * (e[1] - y * e[2])) * iz
                             for i in ti.static(range(D1)):
-                                J[N_GEOMETRIC + N_EPIPOLE + i] = xp[i] * ge
-                        for k in ti.static(range(NG)):
-                            J[N_GEOMETRIC + N_EPIPOLE + NX + k] = phi[k] * c0
+                                J[N_FIXED + i] = xp[i] * ge
+                        for j in ti.static(range(grid_cols)):
+                            J[N_FIXED + NX + j] = bt[j] * c0
                         J[PR - 1] = 1.0
                         valid = ti.select(ok, 1.0, 0.0)
                         w = valid * robust_weight(r, sigma, kind)
@@ -369,35 +435,14 @@ def general_step(
                         a = magnitude[k]
                         if a >= 0.0:
                             hist[hist_bin(a)] += 1.0
+                # Fold the row's sums into the output layout: φ_k = Σ_i row_basis[k, i] x^i, φ_ij = a_i b_j here.
+                row_basis = ti.Matrix.zero(ti.f32, max(NR, 1), D1)
                 if ti.static(with_rho):
-                    # Fold the row's sums into the output layout: φ_k = Σ_i row_basis[k, i] x^i on this row.
-                    row_basis = ti.Matrix.zero(ti.f32, NR, D1)
-                    for k in ti.static(range(NR)):
-                        for i in ti.static(range(D1)):
-                            for j in ti.static(range(D1)):
+                    for k in range(NR):
+                        for i in range(D1):
+                            for j in range(D1):
                                 row_basis[k, i] += basis[k * MAX_MONOMIALS + i * D1 + j] * yp[j]
-                    for a in ti.static(range(P)):
-                        for c in ti.static(range(a, P)):
-                            total = 0.0
-                            for a2, ka, ia in ti.static(_row_expansion(a, NR, D1)):
-                                for c2, kc, ic in ti.static(_row_expansion(c, NR, D1)):
-                                    term = racc[ti.static(_tri(a2, c2, PR))]
-                                    if ti.static(ka >= 0):
-                                        term *= row_basis[ka, ia]
-                                    if ti.static(kc >= 0):
-                                        term *= row_basis[kc, ic]
-                                    total += term
-                            acc[ti.static(_tri(a, c, P))] += total
-                        g_total = 0.0
-                        for a2, ka, ia in ti.static(_row_expansion(a, NR, D1)):
-                            term = racc[NTR + a2]
-                            if ti.static(ka >= 0):
-                                term *= row_basis[ka, ia]
-                            g_total += term
-                        acc[NT + a] += g_total
-                    for k in ti.static(range(N_STATS)):
-                        acc[NT + P + k] += racc[NTR + PR + k]
-                else:
-                    acc += racc
+                row = racc  # a copy: the fold indexes it at run time, the pixel loop's sums stay in registers
+                fold_row(acc, row, row_basis, a_rows, NR, NX, grid_rows, grid_cols)
             store_band(work, acc, hist, b)
     finish_sums(work, NACC, nb)
