@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     import shutil
     import signal
     import threading
+    from pathlib import Path
 
     from ddvs_service.logs import fields, setup_logging
     from ddvs_service.protocol.ros_cli import ros_settings_from_args
@@ -77,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         update: dict[str, object] = {"zenoh": session_config_from_args(args, base=base.zenoh),
                                      "ros": ros_settings_from_args(args, base=base.ros)}
         if args.state_dir:
-            update["state_dir"] = args.state_dir
+            update["state_dir"] = Path(args.state_dir)
         if args.robot:
             update["robot"] = args.robot
         if args.robots:

@@ -1,0 +1,302 @@
+"""Many robots at 30 Hz on one host: one `ddvs serve` process serving N robots against N processes (issue 21).
+
+Each robot has a plant of its own in a separate process (this script with `--publish`): a camera in front of a
+textured plane (`sim.planar_scene.PlanarScene`, the shipped "boat" poster 0.7 m ahead, 320×240, f = 420 px) whose
+pose integrates the servo's twists (`T_ref_cur ← T_ref_cur · exp(ξ dt)`, the twist last received, dt = 1/30 s),
+rendered by `cv2.warpPerspective` and published at 30 Hz in real time (an absolute schedule; each frame stamped with
+the wall clock before it is encoded and put). It uploads the goal image as the reference, starts the servo from a
+random pose (±20 mm, ±1.7° per axis, seeded per robot) and closes the loop, so every frame is a new view the
+registration must track. Latency = twist arrival (the plant's wall clock) − its frame's stamp; a frame is
+answered when its twist arrived (a twist withheld as stale, or a frame dropped because a newer one came, is not).
+
+Modes: `shared` — one `ddvs serve --robots r0 … rN-1`; `separate` — N `ddvs serve --robot ri` processes (today's
+deployment). Every plant warms up (its robot answered 30 frames) before a common measuring window of `--seconds`
+starts; over that window the parent reads each service process's CPU time (`/proc/<pid>/stat`, user + system,
+as % of one core) and, at its end, its resident memory (VmRSS). The load average is printed with every row.
+
+    .venv/bin/python benchmarks/bench_fleet.py [--robots 1 2 4 8 16] [--modes shared separate] [--seconds 30]
+                                               [--markdown] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.rows import print_rows  # noqa: E402
+from ddvs_service.camera import Intrinsics  # noqa: E402 - after the path set-up for running as a script
+from ddvs_service.lie import se3_exp, so3_exp  # noqa: E402
+from ddvs_service.protocol import (  # noqa: E402
+    Command,
+    Header,
+    Keys,
+    Reply,
+    SessionConfig,
+    Time,
+    declare_publisher,
+    decode_twist_stamped,
+    dump,
+    encode_image,
+    image_from_array,
+    open_session,
+)
+from ddvs_service.protocol.upload import encode_upload  # noqa: E402
+from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene  # noqa: E402
+from sim.textures import load_texture  # noqa: E402
+
+W, H, F = 320, 240, 420.0
+CAMERA = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+RATE_HZ = 30.0
+WARM_UP_FRAMES = 30
+READY_LIMIT_S = 600.0  # 16 separate services start one Taichi each on 2 shared cores
+
+
+# --- the plant process ------------------------------------------------------------------------------------------
+def command(session: Any, keys: Keys, timeout: float = 30.0, **kwargs: object) -> Reply:
+    for reply in session.get(keys.key("servo_command"), payload=dump(Command(**kwargs)), timeout=timeout):
+        if reply.ok is None:
+            raise RuntimeError(f"{keys.robot}: the service answered with a Zenoh error")
+        return Reply.model_validate_json(reply.ok.payload.to_bytes())
+    raise RuntimeError(f"{keys.robot}: the service did not answer")
+
+
+def publish(robot: str, port: int, seed: int) -> None:
+    """Plant process of `robot`: uploads the reference, starts the servo, closes the loop at 30 Hz; prints `ready`
+    after the warm-up, reads `T0 SECONDS` (wall clock, s) from stdin, prints its figures as JSON after the window."""
+    scene = PlanarScene(CAMERA, load_texture("boat", POSTER_BLUR_SIGMA), depth=0.7)
+    keys = Keys("ddvs", robot)
+    session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+    lock = threading.Lock()
+    arrivals: dict[int, int] = {}  # frame stamp (ns) -> twist arrival (ns)
+    twist = np.zeros(6)
+
+    def on_twist(sample: Any) -> None:
+        nonlocal twist
+        arrival = time.time_ns()
+        msg = decode_twist_stamped(sample.payload.to_bytes())
+        with lock:
+            arrivals[msg.header.stamp.to_ns()] = arrival
+            twist = msg.vector
+
+    pub = declare_publisher(session, keys, "camera_image")
+    sub = session.declare_subscriber(keys.key("servo_twist"), on_twist)
+    try:
+        deadline = time.monotonic() + READY_LIMIT_S
+        while True:
+            try:
+                command(session, keys, timeout=2.0, op="get_state")
+                break
+            except RuntimeError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
+        goal = np.clip(scene.render(), 0, 255).astype(np.uint8)
+        reply = command(session, keys, op="set_reference", source="upload",
+                        image={"format": "png", "data": encode_upload(goal)})
+        if not reply.ok:
+            raise SystemExit(f"{robot}: reference refused: {reply.error}")
+        if not command(session, keys, op="start").ok:
+            raise SystemExit(f"{robot}: start refused")
+        rng = np.random.default_rng(seed)
+        pose = np.eye(4)
+        pose[:3, :3] = so3_exp(rng.uniform(-0.03, 0.03, 3))
+        pose[:3, 3] = rng.uniform(-0.02, 0.02, 3)
+        window: list[float] = []  # [T0, T1] once told
+        threading.Thread(target=lambda: window.extend(map(float, sys.stdin.readline().split())), daemon=True).start()
+        stamps: list[int] = []
+        ready = False
+        t0, k = time.perf_counter(), 0
+        while not window or time.time() < window[0] + window[1] + 0.5:
+            with lock:
+                applied = twist.copy()
+            pose = pose @ se3_exp(applied / RATE_HZ)
+            image = scene.render(scene.homography(pose[:3, :3], pose[:3, 3]))
+            frame = np.clip(image, 0, 255).astype(np.uint8)
+            stamp = time.time_ns()
+            pub.put(encode_image(image_from_array(frame, "mono8", Header(Time.from_ns(stamp), "camera"))))
+            stamps.append(stamp)
+            if not ready:
+                with lock:
+                    answered = len(arrivals)
+                if answered >= WARM_UP_FRAMES:
+                    ready = True
+                    print("ready", flush=True)
+                elif time.perf_counter() - t0 > READY_LIMIT_S:
+                    raise SystemExit(f"{robot}: fewer than {WARM_UP_FRAMES} frames answered in {READY_LIMIT_S} s")
+            k += 1
+            time.sleep(max(0.0, t0 + k / RATE_HZ - time.perf_counter()))
+        time.sleep(0.3)  # the last twists
+        start_ns, end_ns = int(window[0] * 1e9), int((window[0] + window[1]) * 1e9)
+        measured = [s for s in stamps if start_ns <= s < end_ns]
+        with lock:
+            latencies = [(arrivals[s] - s) / 1e6 for s in measured if s in arrivals]
+        print(json.dumps({"robot": robot, "published": len(measured), "answered": len(latencies),
+                          "latency_ms": latencies, "final_offset_mm": float(np.linalg.norm(pose[:3, 3]) * 1e3)}),
+              flush=True)
+    finally:
+        sub.undeclare()
+        pub.undeclare()
+        session.close()
+
+
+# --- the measuring parent ---------------------------------------------------------------------------------------
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def cpu_seconds(pid: int) -> float:
+    fields_after_name = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields_after_name[11]) + int(fields_after_name[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def memory_mb(pid: int) -> dict[str, float]:
+    """Resident memory of a process (MB): `rss` in all, and its part in shared memory (`shmem`: Zenoh's
+    shared-memory pools of the publishers, mapped for zero-copy frames; also resident in the publishers)."""
+    values = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        name, _, rest = line.partition(":")
+        if name in ("VmRSS", "RssShmem"):
+            values[name] = int(rest.split()[0]) / 1024
+    return {"rss": values["VmRSS"], "shmem": values["RssShmem"]}
+
+
+def start_services(mode: str, robots: list[str], workdir: Path) -> tuple[list[subprocess.Popen], dict[str, int]]:
+    """The service process(es) and each robot's port."""
+    config = workdir / "serve.json"
+    config.write_text(json.dumps({
+        "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
+        "registration": {"template_size": [200, 150]},
+    }))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    common = [sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), "--log-level", "WARNING"]
+    if mode == "shared":
+        port = free_port()
+        proc = subprocess.Popen([*common, "--robots", *robots, "--state-dir", str(workdir / "state"),
+                                 "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT, env=env)
+        return [proc], {r: port for r in robots}
+    procs, ports = [], {}
+    for r in robots:
+        ports[r] = free_port()
+        procs.append(subprocess.Popen([*common, "--robot", r, "--state-dir", str(workdir / r),
+                                       "--listen", f"tcp/127.0.0.1:{ports[r]}"], cwd=ROOT, env=env))
+    return procs, ports
+
+
+def measure(mode: str, n: int, seconds: float) -> dict[str, Any]:
+    robots = [f"r{i}" for i in range(n)]
+    with tempfile.TemporaryDirectory(prefix="ddvs-fleet-") as tmp:
+        services, ports = start_services(mode, robots, Path(tmp))
+        plants = [subprocess.Popen([sys.executable, __file__, "--publish", r, "--port", str(ports[r]),
+                                    "--seed", str(i)], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                   text=True) for i, r in enumerate(robots)]
+        try:
+            t_start = time.monotonic()
+            for plant in plants:
+                assert plant.stdout is not None
+                line = plant.stdout.readline()
+                if line.strip() != "ready":
+                    raise SystemExit(f"a plant failed before its warm-up ended ({mode}, N={n})")
+            ready_s = time.monotonic() - t_start
+            t0 = time.time() + 1.0
+            for plant in plants:
+                assert plant.stdin is not None
+                plant.stdin.write(f"{t0} {seconds}\n")
+                plant.stdin.flush()
+            time.sleep(max(0.0, t0 - time.time()))
+            cpu0, load0 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
+            time.sleep(seconds)
+            cpu1, load1 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
+            memory = [memory_mb(p.pid) for p in services]
+            results = []
+            for plant in plants:
+                out, _ = plant.communicate(timeout=120)
+                results.append(json.loads(out.strip().splitlines()[-1]))
+        finally:
+            for proc in [*plants, *services]:
+                if proc.poll() is None:
+                    proc.send_signal(signal.SIGTERM)
+            for proc in [*plants, *services]:
+                try:
+                    proc.wait(timeout=60)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+    rss, shmem = sum(m["rss"] for m in memory), sum(m["shmem"] for m in memory)
+    return summarise(mode, n, seconds, results, cpu1, cpu0, rss, shmem, load0, load1, ready_s)
+
+
+def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], cpu1: list[float],
+              cpu0: list[float], rss: float, shmem: float, load0: tuple[float, ...], load1: tuple[float, ...],
+              ready_s: float) -> dict[str, Any]:
+    per_robot = []
+    for r in results:
+        lat = np.array(r["latency_ms"]) if r["latency_ms"] else np.array([np.nan])
+        per_robot.append({"robot": r["robot"], "published": r["published"], "answered": r["answered"],
+                          "median_ms": round(float(np.median(lat)), 2),
+                          "p99_ms": round(float(np.percentile(lat, 99)), 2),
+                          "final_offset_mm": round(r["final_offset_mm"], 2)})
+    pooled = np.concatenate([np.array(r["latency_ms"]) for r in results if r["latency_ms"]] or [np.array([np.nan])])
+    published = sum(r["published"] for r in results)
+    answered = sum(r["answered"] for r in results)
+    return {
+        "mode": mode, "robots": n, "seconds": seconds, "published": published, "answered": answered,
+        "answered_fraction": round(answered / max(published, 1), 4),
+        "worst_robot_answered_fraction": round(min(p["answered"] / max(p["published"], 1) for p in per_robot), 4),
+        "median_ms": round(float(np.median(pooled)), 2), "p99_ms": round(float(np.percentile(pooled, 99)), 2),
+        "worst_robot_p99_ms": max(p["p99_ms"] for p in per_robot),
+        "rss_mb": round(rss, 1), "rss_shmem_mb": round(shmem, 1),
+        "cpu_percent": round(100.0 * (sum(cpu1) - sum(cpu0)) / seconds, 1),
+        "load_average": [round(load0[0], 2), round(load1[0], 2)], "ready_s": round(ready_s, 1),
+        "per_robot": per_robot,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robots", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    parser.add_argument("--modes", nargs="+", choices=["shared", "separate"], default=["shared", "separate"])
+    parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--markdown", action="store_true")
+    parser.add_argument("--json", type=Path, help="also write every row (per-robot figures included) here")
+    parser.add_argument("--publish", metavar="ROBOT", help=argparse.SUPPRESS)  # the plant process
+    parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.publish:
+        publish(args.publish, args.port, args.seed)
+        return
+    rows = []
+    for n in args.robots:
+        for mode in args.modes:
+            row = measure(mode, n, args.seconds)
+            print(json.dumps({k: v for k, v in row.items() if k != "per_robot"}), file=sys.stderr, flush=True)
+            rows.append(row)
+            if args.json:
+                args.json.write_text(json.dumps(rows, indent=1))
+    print_rows(rows, args.markdown,
+               ["mode", "robots", "answered", "worst robot answered", "median ms", "p99 ms", "worst robot p99 ms",
+                "RSS MB (of it shared memory)", "CPU % of a core", "load avg (start→end)"],
+               lambda r: [r["mode"], str(r["robots"]), f"{r['answered']}/{r['published']}",
+                          f"{100 * r['worst_robot_answered_fraction']:.1f} %", str(r["median_ms"]), str(r["p99_ms"]),
+                          str(r["worst_robot_p99_ms"]), f"{r['rss_mb']} ({r['rss_shmem_mb']})", str(r["cpu_percent"]),
+                          f"{r['load_average'][0]}→{r['load_average'][1]}"])
+
+
+if __name__ == "__main__":
+    main()
