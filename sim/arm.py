@@ -220,7 +220,7 @@ class ArmSim:
         if spec.oversample > 1:
             k = spec.intrinsics
             grey = cv2.resize(grey, (k.width, k.height), interpolation=cv2.INTER_AREA)
-        return cv2.convertScaleAbs(grey, alpha=255.0 * self.illumination_gain())
+        return np.asarray(cv2.convertScaleAbs(grey, alpha=255.0 * self.illumination_gain()), dtype=np.uint8)
 
     def place_camera(self, T_target_cam: ArrayLike, target: int = 0, seed: ArrayLike | None = None) -> F64:
         """Move the arm so that the camera is at `T_target_cam` in the frame of target `target` (IK seeded with
