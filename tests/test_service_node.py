@@ -320,12 +320,17 @@ def test_restart_resumes_persisted_state(tmp_path: Path) -> None:
         snapshot = op.command(op="get_state").data
         assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING"
         assert op.command(op="get_config").data["control"]["gains"] == 0.3
-        for _ in range(2000):  # global initialisation in the background (LOST, zero twist), then servoing again
+        status = op.send(shifted(img, 5.0, 3.0))  # answered at once: the global initialiser searches beside the loop
+        assert status["state"] == "LOST" and "searching in the background" in status["message"], status
+        assert not np.any(op.twists[-1])
+        searching = 1
+        for _ in range(2000):  # LOST with zero twists until the search's pose is adopted, then servoing again
             status = op.send(shifted(img, 5.0, 3.0))
             if status["state"] != "LOST":
                 break
             assert not np.any(op.twists[-1]), status
-        assert status["state"] == "SERVOING", status
+            searching += "searching in the background" in status["message"]
+        assert status["state"] == "SERVOING", (searching, status)
 
 
 def test_sigterm_publishes_zero_twist_and_exits_cleanly(tmp_path: Path) -> None:
