@@ -31,10 +31,11 @@ MAX_ROTATION_DEG = 0.3
 # The paper's 70×70 template sees the poster through ±4.8°: a tilt of the estimate (h31, h32) moves its corners by
 # 0.01 px per 3e-3 of the control error, so the estimate's tilt near the goal is off by a few 1e-3 (see
 # orchestration/demo.py) and the servo settles where the biased estimate reads zero. A 3×3 gain surface over 70×70
-# pixels takes more of that weak signal (measured in-process, lockstep, anti-aliased frames: the reduced DVS settles
-# 4 mm / 0.3° away with 3×3, 1.5 mm / 0.13° with one gain; the decoupled law 0.7 mm with either, but its stop fell
-# 2.3–3.2 mm away with 3×3): the 70×70 runs use one gain, the exact photometric model of the arm's uniform light;
-# the 200×150 ROI keeps the service's default.
+# pixels takes more of that weak signal (measured in-process, lockstep, on both kinds of frames: the reduced DVS settles
+# 4–6.6 mm away with 3×3, 1.5–1.8 mm with one gain; the decoupled law is less affected: its stop fell 2.5–3.2 mm away
+# with 3×3 over four runs, 2.3 mm with one gain, and 3.15 mm in tests/test_security_e2e.py's lockstep run with 3×3):
+# the 70×70 runs use one gain, the exact photometric model of the arm's uniform light; the 200×150 ROI keeps the
+# service's default.
 SINGLE_GAIN = (1, 1)
 
 
