@@ -241,7 +241,7 @@ def test_robots_of_one_process_servo_independently_and_fairly(tmp_path: Path) ->
 
 @pytest.mark.slow
 def test_robots_added_and_removed_at_run_time(tmp_path: Path) -> None:
-    with fleet(tmp_path, ["a"], "--process", "cell") as (_, ops, port):
+    with fleet(tmp_path, ["a"], "--process", "cell", "--state-dir", str(tmp_path / "state")) as (_, ops, port):
         a = ops["a"]
         wrong = process_command(a, "cell", op="start")
         assert not wrong.ok and "robot's command" in (wrong.error or "")
@@ -321,6 +321,9 @@ def test_each_robot_persists_and_resumes_after_a_restart(tmp_path: Path) -> None
             for op in (ops["a"], c):
                 snapshot = op.command(op="get_state").data
                 assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING"
+                for _ in range(2000):  # re-acquired in the background (LOST, zero twist), then tracked again
+                    if op.send(img)["state"] != "LOST":
+                        break
                 assert converge(op, img)["state"] == "CONVERGED"
         finally:
             c.close()
