@@ -187,6 +187,18 @@ def converge(op: Operator, image: np.ndarray) -> dict:
     return status
 
 
+def past_lost(op: Operator, image: np.ndarray, limit: int = 2000) -> tuple[dict, int]:
+    """Send `image` until the state leaves LOST (re-acquisition runs beside the service's loop: how many frames it
+    answers meanwhile depends on the search's time), each LOST frame with a zero twist; the first status that is
+    not LOST and the count of LOST ones before it."""
+    for lost in range(limit):
+        status = op.send(image)
+        if status["state"] != "LOST":
+            return status, lost
+        assert not np.any(op.twists[-1]), status
+    raise AssertionError(f"still LOST after {limit} frames: {status}")
+
+
 def state_of(op: Operator) -> str:
     reply = op.command(op="get_state")
     assert reply.ok and reply.data is not None
@@ -220,11 +232,7 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     moved = shifted(img, 6.0, -4.0, 3.0)
     status = op.send(moved)
     assert status["state"] == "LOST" and "suspect fit" in status["message"] and not np.any(op.twists[-1]), status
-    for _ in range(2000):
-        status = op.send(moved)
-        if status["state"] == "SERVOING":
-            break
-        assert not np.any(op.twists[-1]), status
+    status, _ = past_lost(op, moved)
     assert status["state"] == "SERVOING", status
     assert status["error_norm"] > 5e-3
     twist = op.twists[-1]
@@ -237,14 +245,8 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     assert status["state"] == "LOST", status
     assert not np.any(op.twists[-1])
 
-    held = 0  # target back in view: re-acquired (in the background: frames answered meanwhile), held still until
-    for _ in range(2000):  # 3 tracked frames confirm it
-        status = op.send(shifted(img, 2.0, 1.0))
-        if status["state"] != "LOST":
-            break
-        assert not np.any(op.twists[-1]), status
-        held += 1
-    assert status["state"] in ("SERVOING", "CONVERGED") and held >= 2, (held, status)
+    status, held = past_lost(op, shifted(img, 2.0, 1.0))  # target back in view: re-acquired, held still until
+    assert status["state"] in ("SERVOING", "CONVERGED") and held >= 2, (held, status)  # 3 tracked frames confirm it
 
     assert op.command(op="stop").ok
     assert state_of(op) == "STOPPED"
@@ -323,14 +325,8 @@ def test_restart_resumes_persisted_state(tmp_path: Path) -> None:
         status = op.send(shifted(img, 5.0, 3.0))  # answered at once: the global initialiser searches beside the loop
         assert status["state"] == "LOST" and "searching in the background" in status["message"], status
         assert not np.any(op.twists[-1])
-        searching = 1
-        for _ in range(2000):  # LOST with zero twists until the search's pose is adopted, then servoing again
-            status = op.send(shifted(img, 5.0, 3.0))
-            if status["state"] != "LOST":
-                break
-            assert not np.any(op.twists[-1]), status
-            searching += "searching in the background" in status["message"]
-        assert status["state"] == "SERVOING", (searching, status)
+        status, _ = past_lost(op, shifted(img, 5.0, 3.0))  # until the search's pose is adopted
+        assert status["state"] == "SERVOING", status
 
 
 def test_sigterm_publishes_zero_twist_and_exits_cleanly(tmp_path: Path) -> None:
@@ -366,11 +362,7 @@ def test_general_model_serves_a_planar_target(tmp_path: Path, interpolation: str
         assert op.command(op="set_reference", source="next_frame").ok
         op.send(img)
         assert op.command(op="start").ok
-        for _ in range(2000):  # the general tracker acquires globally (ρ* too): in the background, LOST meanwhile
-            status = op.send(shifted(img, 4.0, -3.0, 2.0))
-            if status["state"] != "LOST":
-                break
-            assert not np.any(op.twists[-1]), status
+        status, _ = past_lost(op, shifted(img, 4.0, -3.0, 2.0))  # the general tracker acquires globally (ρ* too)
         assert status["state"] == "SERVOING", status
         assert np.linalg.norm(status["twist"]) > 0, status
         assert converge(op, img)["state"] == "CONVERGED"
