@@ -9,7 +9,8 @@ holds a view that jumped for `rebase_frames` frames) or `--timeout` s passed.
 
 Per mode: the step time of the LOST frames (median, 95th percentile, max), how many LOST frames were answered while
 the worker searched, the time from the first LOST frame to SERVOING, the searches the worker ran, and the longest a
-`step` waited for the Taichi gate (`kernels.exclusive.GATE`) while the worker held it. Inline mode
+`step` waited for the Taichi gate (`kernels.exclusive.GATE`) while the worker held it; and what the gate costs
+when uncontended (one `hold` per step, one `checkpoint` per prepared kernel launch). Inline mode
 (`background_reacquisition=False`) is the baseline: every LOST frame runs the whole initialiser. Load: this
 process alone (one loop thread and, in background mode, one worker) after the service's warm-up (`service.startup`:
 every kernel compiled); the load average is printed with the figures.
@@ -23,6 +24,7 @@ import argparse
 import os
 import sys
 import time
+import timeit
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +38,7 @@ from ddvs_service.service.config import ServiceConfig  # noqa: E402
 from ddvs_service.service.pipeline import ServoPipeline  # noqa: E402
 from ddvs_service.service.startup import warm_up  # noqa: E402
 from ddvs_service.service.state import ServoState  # noqa: E402
-from kernels.exclusive import GATE  # noqa: E402
+from kernels.exclusive import GATE, Gate  # noqa: E402
 from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene  # noqa: E402
 from sim.textures import TEXTURES, load_texture  # noqa: E402
 
@@ -100,6 +102,19 @@ def measure(scene: PlanarScene, roi: tuple[int, int, int, int], background: bool
     }
 
 
+def gate_overhead(n: int = 100_000) -> dict[str, float]:
+    """What the gate costs a step when no other thread wants it: one `hold()` (a step takes it once, the residual
+    once more) and one `checkpoint()` (each prepared kernel launch), microseconds."""
+    gate = Gate()
+
+    def hold() -> None:
+        with gate.hold():
+            pass
+
+    return {"hold_us": timeit.timeit(hold, number=n) / n * 1e6,
+            "checkpoint_us": timeit.timeit(gate.checkpoint, number=n) / n * 1e6}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rois", type=int, nargs="+", default=[70, 200], choices=sorted(ROIS))
@@ -113,6 +128,7 @@ def main() -> None:
         for background in (True, False):
             row = measure(scene, ROIS[size], background, args.turn_deg, args.timeout)
             print({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
+    print(f"uncontended gate: { {k: round(v, 2) for k, v in gate_overhead().items()} }", flush=True)
     print(f"load average after: {os.getloadavg()}", flush=True)
 
 
