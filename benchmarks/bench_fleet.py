@@ -167,14 +167,16 @@ def cpu_seconds(pid: int) -> float:
 
 
 def memory_mb(pid: int) -> dict[str, float]:
-    """Resident memory of a process (MB): `rss` in all, and its part in shared memory (`shmem`: Zenoh's
-    shared-memory pools of the publishers, mapped for zero-copy frames; also resident in the publishers)."""
+    """Memory of a process (MB): `rss` resident in all; `shmem`, the part in shared memory (Zenoh's shared-memory
+    pools of the publishers, mapped for zero-copy frames, also resident in the publishers); `pss`, the proportional
+    share (each shared page divided among the processes mapping it)."""
     values = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        name, _, rest = line.partition(":")
-        if name in ("VmRSS", "RssShmem"):
-            values[name] = int(rest.split()[0]) / 1024
-    return {"rss": values["VmRSS"], "shmem": values["RssShmem"]}
+    for path in (f"/proc/{pid}/status", f"/proc/{pid}/smaps_rollup"):
+        for line in Path(path).read_text().splitlines():
+            name, _, rest = line.partition(":")
+            if name in ("VmRSS", "RssShmem", "Pss"):
+                values[name] = int(rest.split()[0]) / 1024
+    return {"rss": values["VmRSS"], "shmem": values["RssShmem"], "pss": values["Pss"]}
 
 
 def start_services(mode: str, robots: list[str], workdir: Path) -> tuple[list[subprocess.Popen], dict[str, int]]:
@@ -237,12 +239,11 @@ def measure(mode: str, n: int, seconds: float) -> dict[str, Any]:
                     proc.wait(timeout=60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    rss, shmem = sum(m["rss"] for m in memory), sum(m["shmem"] for m in memory)
-    return summarise(mode, n, seconds, results, cpu1, cpu0, rss, shmem, load0, load1, ready_s)
+    return summarise(mode, n, seconds, results, cpu1, cpu0, memory, load0, load1, ready_s)
 
 
 def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], cpu1: list[float],
-              cpu0: list[float], rss: float, shmem: float, load0: tuple[float, ...], load1: tuple[float, ...],
+              cpu0: list[float], memory: list[dict[str, float]], load0: tuple[float, ...], load1: tuple[float, ...],
               ready_s: float) -> dict[str, Any]:
     per_robot = []
     for r in results:
@@ -260,7 +261,7 @@ def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], 
         "worst_robot_answered_fraction": round(min(p["answered"] / max(p["published"], 1) for p in per_robot), 4),
         "median_ms": round(float(np.median(pooled)), 2), "p99_ms": round(float(np.percentile(pooled, 99)), 2),
         "worst_robot_p99_ms": max(p["p99_ms"] for p in per_robot),
-        "rss_mb": round(rss, 1), "rss_shmem_mb": round(shmem, 1),
+        **{f"{kind}_mb": round(sum(m[kind] for m in memory), 1) for kind in ("rss", "shmem", "pss")},
         "cpu_percent": round(100.0 * (sum(cpu1) - sum(cpu0)) / seconds, 1),
         "load_average": [round(load0[0], 2), round(load1[0], 2)], "ready_s": round(ready_s, 1),
         "per_robot": per_robot,
@@ -291,11 +292,11 @@ def main() -> None:
                 args.json.write_text(json.dumps(rows, indent=1))
     print_rows(rows, args.markdown,
                ["mode", "robots", "answered", "worst robot answered", "median ms", "p99 ms", "worst robot p99 ms",
-                "RSS MB (of it shared memory)", "CPU % of a core", "load avg (start→end)"],
+                "RSS MB (of it shared memory)", "PSS MB", "CPU % of a core", "load avg (start→end)"],
                lambda r: [r["mode"], str(r["robots"]), f"{r['answered']}/{r['published']}",
                           f"{100 * r['worst_robot_answered_fraction']:.1f} %", str(r["median_ms"]), str(r["p99_ms"]),
-                          str(r["worst_robot_p99_ms"]), f"{r['rss_mb']} ({r['rss_shmem_mb']})", str(r["cpu_percent"]),
-                          f"{r['load_average'][0]}→{r['load_average'][1]}"])
+                          str(r["worst_robot_p99_ms"]), f"{r['rss_mb']} ({r['shmem_mb']})", str(r["pss_mb"]),
+                          str(r["cpu_percent"]), f"{r['load_average'][0]}→{r['load_average'][1]}"])
 
 
 if __name__ == "__main__":
