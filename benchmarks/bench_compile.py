@@ -1,12 +1,18 @@
-"""Compile time of the planar step against the gain grid (issue 21): first launch of `kernels.planar_step` in a fresh
-process, cold (Taichi's offline cache at an empty directory) and warm (the same directory again), and the median
-launch afterwards.
+"""Compile time of the frame-path kernels against the gain grid (issue 21): first launch in a fresh process, cold
+(Taichi's offline cache at an empty directory) and warm (the same directory again), and the median launch afterwards.
 
-Each measurement runs in its own process (`--grid R C`); the cache directory is chosen through Taichi's
-`TI_OFFLINE_CACHE_FILE_PATH`. The first launch of any kernel in a process also pays Taichi's runtime start, so what
-grows with the grid is the difference to the 1×1 row.
+- `planar`: `kernels.planar_step` (the planar model's step).
+- `general`: the four `kernels.general_step` specialisations the general model's frame path launches (ρ* columns
+  or not × Keys or B-spline sampling), degree `--degree` of ρ*; the times are their sum.
 
-    .venv/bin/python benchmarks/bench_compile.py [--grids 1x1 2x2 3x3 4x4] [--markdown]
+Each measurement runs in its own process; the cache directory is chosen through Taichi's
+`TI_OFFLINE_CACHE_FILE_PATH`, so nobody else's cache is touched. Besides wall time each row gives the process CPU
+time of the first launches (all threads; Taichi compiles on the launching thread): on a shared host the wall time
+grows with the load, the CPU time much less. The first launch of any kernel in a process also pays Taichi's
+runtime start (≈ 0.1 s).
+
+    .venv/bin/python benchmarks/bench_compile.py [--paths planar general] [--grids 1x1 2x2 3x3 4x4 1x4 4x1]
+        [--degree 2] [--markdown]
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,48 +32,110 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.rows import print_rows  # noqa: E402
 
+ROI = (300, 250, 499, 399)  # u0, v0, u1, v1: 200×150
+H_TRUE = ((1.01, 0.02, 3.3), (-0.015, 0.99, -2.7), (1e-5, -2e-5, 1.0))
 
-def first_launch(rows: int, cols: int) -> dict[str, float]:
-    """This process: time the first `planar_step` launch on a 200×150 ROI, then the median of 50 more."""
+
+def _images():
     import cv2
     import numpy as np
 
-    from kernels import planar_step as ps
-    from kernels.backend import init
     from sim.textures import load_texture
 
-    init()
     ref = cv2.GaussianBlur(load_texture("boat"), (0, 0), 1.0).astype(np.float32)
-    G = np.array([[1.01, 0.02, 3.3], [-0.015, 0.99, -2.7], [1e-5, -2e-5, 1.0]])
-    cur = cv2.warpPerspective(ref, G, (ref.shape[1], ref.shape[0])) * 0.9 + 7.0
-    u0, v0, u1, v1 = 300, 250, 499, 399
+    cur = cv2.warpPerspective(ref, np.array(H_TRUE), (ref.shape[1], ref.shape[0])) * 0.9 + 7.0
+    return ref, cur.astype(np.float32)
+
+
+def planar_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[], None]]:
+    """`planar_step` on a 200×150 ROI of a warped boat pair (`degree` unused)."""
+    import numpy as np
+
+    from kernels import planar_step as ps
+
+    ref, cur = _images()
+    u0, v0, u1, v1 = ROI
     params = np.zeros(ps.PARAMS_GAINS + rows * cols, dtype=np.float32)
-    params[ps.PARAMS_G:ps.PARAMS_G + 9] = G.reshape(9)
+    params[ps.PARAMS_G:ps.PARAMS_G + 9] = np.array(H_TRUE).reshape(9)
     params[ps.PARAMS_NORM:ps.PARAMS_NORM + 3] = (0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * (u1 - u0))
-    params[ps.PARAMS_ROI:ps.PARAMS_ROI + 4] = (u0, v0, u1, v1)
-    params[ps.PARAMS_SPAN:ps.PARAMS_SPAN + 4] = (u0, v0, u1, v1)
+    params[ps.PARAMS_ROI:ps.PARAMS_ROI + 4] = ROI
+    params[ps.PARAMS_SPAN:ps.PARAMS_SPAN + 4] = ROI
     params[ps.PARAMS_SIGMA], params[ps.PARAMS_ROBUST], params[ps.PARAMS_BANDS] = 4.0, 1, 8
     params[ps.PARAMS_GAINS:] = 1.0
     work = np.zeros(ps.work_size(ps.n_params(rows, cols)), dtype=np.float32)
-    t0 = time.perf_counter()
-    ps.planar_step(ref, cur, params, work, rows, cols)
-    first = time.perf_counter() - t0
-    launches = []
+    return {"planar_step": lambda: ps.planar_step(ref, cur, params, work, rows, cols)}
+
+
+def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[], None]]:
+    """The four `general_step` specialisations of the general frame path on the same pair, ρ* of `degree`
+    non-zero; the last one is the tracking launch (no ρ* columns, B-spline sampling)."""
+    import numpy as np
+
+    from ddvs_service.registration.general_basis import ParallaxBasis
+    from kernels import general_step as gs
+
+    ref, cur = _images()
+    u0, v0, u1, v1 = ROI
+    basis = ParallaxBasis.over((u0, v0, u1 - u0 + 1, v1 - v0 + 1), degree)
+    params = np.zeros(gs.params_size(basis.size), dtype=np.float32)
+    params[gs.PARAMS_G:gs.PARAMS_G + 9] = np.array(H_TRUE).reshape(9)
+    params[gs.PARAMS_E:gs.PARAMS_E + 3] = (0.3, -0.2, 0.001)
+    params[gs.PARAMS_NORM:gs.PARAMS_NORM + 3] = (0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.5 * (u1 - u0))
+    params[gs.PARAMS_BNORM:gs.PARAMS_BNORM + 3] = (*basis.centre, basis.half_size)
+    params[gs.PARAMS_ROI:gs.PARAMS_ROI + 4] = ROI
+    params[gs.PARAMS_DOMAIN:gs.PARAMS_DOMAIN + 4] = (-1e9, -1e9, 1e9, 1e9)
+    params[gs.PARAMS_SPAN:gs.PARAMS_SPAN + 4] = ROI
+    params[gs.PARAMS_SIGMA], params[gs.PARAMS_ROBUST], params[gs.PARAMS_BANDS] = 4.0, 1, 8
+    params[gs.PARAMS_GAINS:gs.PARAMS_GAINS + rows * cols] = 1.0
+    n_mono = (degree + 1) ** 2
+    params[gs.PARAMS_RHO:gs.PARAMS_RHO + n_mono] = basis.monomial_coefficients(np.full(basis.size, 0.3))
+    for i, row in enumerate(basis.B):
+        params[gs.PARAMS_BASIS + i * gs.MAX_MONOMIALS:gs.PARAMS_BASIS + i * gs.MAX_MONOMIALS + n_mono] = row
+    launches = {}
+    for with_rho, spline in ((True, False), (True, True), (False, False), (False, True)):
+        work = np.zeros(gs.work_size(gs.n_columns(basis.size, with_rho, rows, cols)), dtype=np.float32)
+        name = f"general_step rho={int(with_rho)} spline={int(spline)}"
+        launches[name] = (lambda work=work, flags=(with_rho, rows, cols, spline):
+                          gs.general_step(ref, cur, params, work, degree, basis.size, *flags))
+    return launches
+
+
+PATHS = {"planar": planar_launches, "general": general_launches}
+
+
+def first_launches(path: str, rows: int, cols: int, degree: int) -> dict[str, object]:
+    """This process: wall and CPU time of each kernel's first launch, then the median of 50 more of the last."""
+    import numpy as np
+
+    from kernels.backend import init
+
+    init()
+    launches = PATHS[path](rows, cols, degree)
+    per_kernel = {}
+    for name, launch in launches.items():
+        t0, c0 = time.perf_counter(), time.process_time()
+        launch()
+        per_kernel[name] = (round(time.perf_counter() - t0, 2), round(time.process_time() - c0, 2))
+    last = list(launches.values())[-1]
+    times = []
     for _ in range(50):
         t0 = time.perf_counter()
-        ps.planar_step(ref, cur, params, work, rows, cols)
-        launches.append(time.perf_counter() - t0)
-    return {"first_s": round(first, 2), "launch_ms": round(1e3 * float(np.median(launches)), 3)}
+        last()
+        times.append(time.perf_counter() - t0)
+    return {"first_s": round(sum(w for w, _ in per_kernel.values()), 2),
+            "first_cpu_s": round(sum(c for _, c in per_kernel.values()), 2),
+            "slowest_cpu_s": max(c for _, c in per_kernel.values()),
+            "per_kernel": per_kernel, "launch_ms": round(1e3 * float(np.median(times)), 3)}
 
 
-def measure(rows: int, cols: int) -> dict[str, object]:
+def measure(path: str, rows: int, cols: int, degree: int) -> dict[str, object]:
     """Cold then warm, each in a fresh process, sharing one new cache directory."""
-    out: dict[str, object] = {"grid": f"{rows}×{cols}"}
+    out: dict[str, object] = {"path": path, "grid": f"{rows}×{cols}", "degree": degree if path == "general" else None}
     with tempfile.TemporaryDirectory(prefix="ddvs-ticache-") as cache:
         env = {**os.environ, "TI_OFFLINE_CACHE_FILE_PATH": cache}
         for kind in ("cold", "warm"):
-            run = subprocess.run([sys.executable, __file__, "--grid", str(rows), str(cols)], env=env, check=True,
-                                 capture_output=True, text=True)
+            run = subprocess.run([sys.executable, __file__, "--child", path, str(rows), str(cols), str(degree)],
+                                 env=env, check=True, capture_output=True, text=True)
             out[kind] = json.loads(run.stdout.strip().splitlines()[-1])
     out["load_average"] = round(os.getloadavg()[0], 2)
     return out
@@ -74,17 +143,25 @@ def measure(rows: int, cols: int) -> dict[str, object]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--grid", type=int, nargs=2, metavar=("ROWS", "COLS"), help=argparse.SUPPRESS)
-    parser.add_argument("--grids", nargs="+", default=["1x1", "2x2", "3x3", "4x4"])
+    parser.add_argument("--child", nargs=4, metavar=("PATH", "ROWS", "COLS", "DEGREE"), help=argparse.SUPPRESS)
+    parser.add_argument("--paths", nargs="+", choices=sorted(PATHS), default=["planar", "general"])
+    parser.add_argument("--grids", nargs="+", default=["1x1", "2x2", "3x3", "4x4", "1x4", "4x1"])
+    parser.add_argument("--degree", type=int, default=2, choices=[2, 3], help="degree of ρ* (general path)")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
-    if args.grid:
-        print(json.dumps(first_launch(*args.grid)))
+    if args.child:
+        path, rows, cols, degree = args.child
+        print(json.dumps(first_launches(path, int(rows), int(cols), int(degree))))
         return
-    rows = [measure(*(int(n) for n in grid.split("x"))) for grid in args.grids]
+    rows = [measure(path, *(int(n) for n in grid.split("x")), args.degree) for path in args.paths
+            for grid in args.grids]
     print_rows(rows, args.markdown,
-               ["gain grid", "first launch, cold cache", "first launch, warm cache", "launch afterwards", "load"],
-               lambda r: [r["grid"], f"{r['cold']['first_s']:.1f} s", f"{r['warm']['first_s']:.1f} s",
+               ["path", "gain grid", "first launches, cold cache: wall / CPU", "slowest kernel, CPU",
+                "first launches, warm cache: wall / CPU", "launch afterwards", "load"],
+               lambda r: [r["path"] + (f" (ρ* degree {r['degree']})" if r["degree"] else ""), r["grid"],
+                          f"{r['cold']['first_s']:.1f} s / {r['cold']['first_cpu_s']:.1f} s",
+                          f"{r['cold']['slowest_cpu_s']:.1f} s",
+                          f"{r['warm']['first_s']:.1f} s / {r['warm']['first_cpu_s']:.1f} s",
                           f"{r['warm']['launch_ms']:.2f} ms", f"{r['load_average']:.2f}"])
 
 
