@@ -65,6 +65,7 @@ class Inbox:
         self._queries: deque[zenoh.Query] = deque(maxlen=max_queries)
         self._frames_received = 0
         self._frames_superseded = 0
+        self._waiting_since: float | None = None  # arrival of the oldest frame not taken (superseded ones too)
         self._last_arrival_t = time.monotonic()
 
     # --- Zenoh callbacks (Zenoh's threads; never block) ---------------------------------------------------------
@@ -75,6 +76,8 @@ class Inbox:
                 self._frames_superseded += 1
             self._frames_received += 1
             self._frame = Arrival(sample, self._frames_received, t, self.wakeup.turns)
+            if self._waiting_since is None:
+                self._waiting_since = t
             self._last_arrival_t = t
             self._ready.notify()
 
@@ -103,10 +106,11 @@ class Inbox:
             return self._frame is not None or self._info is not None or bool(self._queries)
 
     @property
-    def has_frame(self) -> bool:
-        """A frame is waiting."""
+    def waiting_since(self) -> float | None:
+        """`time.monotonic()` of the arrival of the oldest frame the loop has not taken (one superseded since
+        included: a robot's claim to a turn does not restart with each newer frame), None when no frame waits."""
         with self._ready:
-            return self._frame is not None
+            return self._waiting_since
 
     def take_query(self) -> zenoh.Query | None:
         """The oldest pending command, or None."""
@@ -126,6 +130,7 @@ class Inbox:
             frame, self._frame = self._frame, None
             if frame is not None:
                 self.wakeup.turns += 1
+                self._waiting_since = None
             return frame
 
     @property

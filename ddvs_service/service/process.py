@@ -3,8 +3,8 @@
 All robots share the process's Taichi runtime and its compiled kernels, and one loop thread (Taichi launches and
 compiles on the thread that runs it). Each turn the loop runs: the oldest pending process command
 (`<prefix>/serve/<process>/command`: `add_robot`, `remove_robot`, `list_robots`), each robot's oldest pending
-command and newest camera info, one frame — the newest of the next robot in round-robin order that has one
-(`scheduler.RoundRobin`: a robot's frame waits behind at most one frame of each other robot) — then every robot's
+command and newest camera info, one frame — the newest of the robot that has waited longest for a turn
+(`scheduler.Scheduler`: a robot's frame waits behind at most one frame of each other robot) — then every robot's
 watchdog. Between turns it sleeps until something arrives for the process or any robot, or a watchdog is due.
 A robot's bad frame or command is answered for that robot alone; the others go on.
 
@@ -34,7 +34,7 @@ from ddvs_service.service.fleet_config import FleetChanges, FleetConfig
 from ddvs_service.service.inbox import Inbox, Wakeup
 from ddvs_service.service.persistence import BackgroundWriter, StateStore
 from ddvs_service.service.robot import RobotServo
-from ddvs_service.service.scheduler import RoundRobin
+from ddvs_service.service.scheduler import Scheduler
 
 log = logging.getLogger("ddvs.serve")
 MAX_WAIT_S = 0.05  # longest sleep between turns: how soon a set `stop` is noticed
@@ -53,7 +53,7 @@ class ServeProcess:
         self.writer = BackgroundWriter(StateStore(fleet.base.state_dir))
         self.changes = FleetChanges(self.writer)
         self.robots: dict[str, RobotServo] = {}
-        self.scheduler = RoundRobin()
+        self.scheduler = Scheduler()
         self._warmed: set[str] = set()
         self._session: zenoh.Session | None = None
         if robots is None:
@@ -127,7 +127,7 @@ class ServeProcess:
         self._handle_query(self.inbox.take_query())
         for robot in self.robots.values():
             robot.handle_inputs()
-        name = self.scheduler.pick(lambda n: self.robots[n].inbox.has_frame)
+        name = self.scheduler.pick(lambda n: self.robots[n].inbox.waiting_since)
         if name is not None:
             robot = self.robots[name]
             arrival = robot.inbox.take_frame()

@@ -1,15 +1,18 @@
-"""Which robot's frame the loop thread takes next when one process serves several robots: round robin.
+"""Which robot's frame the loop thread takes next when one process serves several robots: the one waiting longest.
 
-The loop takes one frame per turn (each robot keeps only its newest frame, `Inbox`). `RoundRobin.pick` returns the
-first robot after the one served last, in the order robots were added, that has a frame waiting. So between a
-frame's arrival and the turn that takes it, every other robot's frame is taken at most once, besides the turn
-already running when it arrived: a robot's frame waits behind at most one frame of each other robot, and behind
-N − 1 frames in all with N robots. Nothing is queued: a robot whose frame was superseded while it waited serves its
-newest one (`dropped` counts the other).
+The loop takes one frame per turn (each robot keeps only its newest frame, `Inbox`). `Scheduler.pick` returns the
+robot whose waiting started first — `Inbox.waiting_since`, the arrival of its oldest frame not taken, superseded
+ones included, so a robot's claim does not restart with each newer frame — ties going round robin from the robot
+after the one served last. A frame is therefore never taken after a frame of another robot that started waiting
+later, and between a frame's arrival and its turn every other robot is served at most once (its next frame starts
+waiting after ours), besides the turn already running: a robot's frame waits behind at most one frame of each other
+robot, N − 1 in all with N robots. Against plain round robin (same bound) this keeps a frame from waiting behind
+frames that arrived after it, which is what sets the tail when frames of several robots meet. Nothing is queued: a
+robot whose frame was superseded while it waited serves its newest one (`dropped` counts the other).
 
-`RoundRobin.take(name, arrival_turn, turn)` records what the frame waited behind, measured in turns (`Wakeup.turns`
-at its arrival against its own turn's number), as `Fairness`: the most turns one frame waited behind, the most of those
-that belonged to a single other robot, and the frames taken. Those figures, not wall-clock times, are what the
+`Scheduler.take(name, arrival_turn, turn)` records what the frame waited behind, measured in turns (`Wakeup.turns`
+at its arrival against its own turn's number), as `Fairness`: the most turns one frame waited behind, the most of
+those that belonged to a single other robot, and the frames taken. Those figures, not wall-clock times, are what the
 tests check (`list_robots` reports them).
 """
 
@@ -30,8 +33,8 @@ class Fairness:
     max_waited_one_robot: int = 0
 
 
-class RoundRobin:
-    """Round-robin choice among named robots with a frame waiting, and the `Fairness` it achieved per robot."""
+class Scheduler:
+    """Longest-waiting-first choice among named robots (ties round robin), and the `Fairness` it achieved."""
 
     def __init__(self) -> None:
         self._order: list[str] = []
@@ -54,15 +57,20 @@ class RoundRobin:
         self._next = self._next % len(self._order) if self._order else 0
         del self._last_two[name], self.fairness[name]
 
-    def pick(self, has_frame: Callable[[str], bool]) -> str | None:
-        """The next robot, in round-robin order from the one after the last served, with a frame waiting."""
+    def pick(self, waiting_since: Callable[[str], float | None]) -> str | None:
+        """The robot that has waited longest for a turn (`Inbox.waiting_since`; None: no frame), ties in round-robin
+        order from the robot after the one served last; None when no robot has a frame."""
         n = len(self._order)
+        best: tuple[float, int] | None = None
         for k in range(n):
-            name = self._order[(self._next + k) % n]
-            if has_frame(name):
-                self._next = (self._next + k + 1) % n
-                return name
-        return None
+            since = waiting_since(self._order[(self._next + k) % n])
+            if since is not None and (best is None or since < best[0]):
+                best = (since, k)
+        if best is None:
+            return None
+        i = (self._next + best[1]) % n
+        self._next = (i + 1) % n
+        return self._order[i]
 
     def take(self, name: str, arrival_turn: int, turn: int) -> None:
         """Count the frame of `name` taken as the loop's `turn`-th frame (1-based), which arrived when
