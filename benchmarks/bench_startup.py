@@ -1,13 +1,16 @@
 """Start-up of the servo service after a restart: process start → alive → first twist (issue 21).
 
 A service that was servoing is restarted while a camera publishes at 30 Hz (this process, stamps = wall clock):
-`alive` is the first reply to `get_state`, `first twist` the first twist answering a frame, both measured from the
-moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). This process
+`alive` is the first reply to `get_state`, `first answer` the first twist answering a frame (a zero one while the
+service is still re-acquiring counts), `first twist` the first non-zero one (the servo moving again), all measured
+from the moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). This process
 listens and the service connects to it as it opens its session, so no reconnection period of Zenoh's is measured.
 The warm-up (the default) compiles the configuration's kernels before the service declares itself alive;
-`--no-warmup` leaves them to the first frame. The warm-up's own time is read from the service's log.
+`--no-warmup` leaves them to the first frame. The warm-up's own time is read from the service's log. Besides wall
+time each row gives the service process's CPU time (all threads, `/proc/PID/stat`) when it answered alive and right
+after its first twist: on a shared host the wall time grows with the load, the CPU time much less.
 
-    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--gain-grid 1 1] [--markdown]
+    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--gain-grid 1 1] [--model planar] [--markdown]
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -54,6 +59,12 @@ def stop(service: subprocess.Popen) -> str:
     service.send_signal(signal.SIGTERM)
     _, stderr = service.communicate(timeout=60)
     return stderr
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process `pid` so far (all its threads)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def warm_up_seconds(log: str) -> float | None:
@@ -89,11 +100,17 @@ def wait_alive(session, deadline: float) -> float:
 
 def restart(config: Path, port: int, warmup: bool) -> dict:
     frames = [frame_at(scene(), k) for k in range(90)]
+    first_answer: list[float] = []
     first_twist: list[float] = []
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
 
-        def on_twist(sample) -> None:  # a twist answering a frame carries its wall-clock stamp (a zero one: 0)
-            if not first_twist and decode_twist_stamped(sample.payload.to_bytes()).header.stamp.to_ns() >= t_frames:
+        def on_twist(sample) -> None:  # a twist answering a frame carries its wall-clock stamp (a watchdog's zero: 0)
+            twist = decode_twist_stamped(sample.payload.to_bytes())
+            if twist.header.stamp.to_ns() < t_frames:
+                return
+            if not first_answer:
+                first_answer.append(time.monotonic())
+            if not first_twist and (np.any(twist.linear != 0.0) or np.any(twist.angular != 0.0)):
                 first_twist.append(time.monotonic())
 
         t_frames = time.time_ns()
@@ -115,16 +132,20 @@ def restart(config: Path, port: int, warmup: bool) -> dict:
         service = spawn(config, *(() if warmup else ("--no-warmup",)))
         try:
             alive = wait_alive(session, t0 + 300) - t0
+            cpu_alive = cpu_seconds(service.pid)
             deadline = time.monotonic() + 300
             while not first_twist and time.monotonic() < deadline:
                 time.sleep(0.005)
+            cpu_twist = cpu_seconds(service.pid)
         finally:
             done.set()
             thread.join()
             log = stop(service)
             sub.undeclare()
             pub.undeclare()
-    return {"warmup": warmup, "alive_s": round(alive, 3), "first_twist_s": round(first_twist[0] - t0, 3),
+    return {"warmup": warmup, "alive_s": round(alive, 3), "first_answer_s": round(first_answer[0] - t0, 3),
+            "first_twist_s": round(first_twist[0] - t0, 3),
+            "cpu_alive_s": round(cpu_alive, 2), "cpu_first_twist_s": round(cpu_twist, 2),
             "warm_up_s": warm_up_seconds(log), "load_average": round(os.getloadavg()[0], 2)}
 
 
@@ -132,6 +153,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--gain-grid", type=int, nargs=2, default=[1, 1], metavar=("ROWS", "COLS"))
+    parser.add_argument("--model", choices=["planar", "general"], default="planar")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
     port = free_port()
@@ -140,12 +162,16 @@ def main() -> None:
     config.write_text(json.dumps({
         "robot": "boot", "state_dir": state, "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]},
         "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
-        "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid},
+        "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid, "model": args.model},
     }))
     prepare(config, port)
     rows = [restart(config, port, warmup) for _ in range(args.runs) for warmup in (True, False)]
-    print_rows(rows, args.markdown, ["warm-up", "process start → alive", "→ first twist", "warm-up itself", "load"],
-               lambda r: ["yes" if r["warmup"] else "no", f"{r['alive_s']:.2f} s", f"{r['first_twist_s']:.2f} s",
+    print_rows(rows, args.markdown,
+               ["warm-up", "process start → alive: wall / CPU", "→ first answer", "→ first non-zero twist: wall / CPU",
+                "warm-up itself", "load"],
+               lambda r: ["yes" if r["warmup"] else "no", f"{r['alive_s']:.2f} s / {r['cpu_alive_s']:.2f} s",
+                          f"{r['first_answer_s']:.2f} s",
+                          f"{r['first_twist_s']:.2f} s / {r['cpu_first_twist_s']:.2f} s",
                           f"{r['warm_up_s'] or 0:.2f} s", f"{r['load_average']:.2f}"])
 
 
