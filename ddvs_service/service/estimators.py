@@ -22,7 +22,7 @@ from ddvs_service.registration.general import GeneralRegistration
 from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.planar import PlanarRegistration
-from ddvs_service.registration.reacquisition import Reacquisition
+from ddvs_service.registration.reacquisition import Acquisition, Reacquisition
 from ddvs_service.registration.residual import residual_image
 from ddvs_service.registration.result import RegistrationResult
 from ddvs_service.registration.tracker import Tracker
@@ -152,14 +152,16 @@ class PlanarEstimator:
 
 class GeneralEstimator:
     """General tracker of eq. (2): ρ* estimated once and kept in the reference frame (`rho_coeffs`); `G`, `e`
-    tracked."""
+    tracked. Once the tracker declares LOST, it re-acquires as the planar estimator does: from the last good
+    estimate first, then from the global initialiser's (`LastGoodFirst`)."""
 
     def __init__(self, reference: NDArray[np.float32], roi: Roi, settings: RegistrationSettings,
                  rho_coeffs: list[float] | None = None, background: bool = False) -> None:
         self.settings = settings
         engine = GeneralRegistration.prepare(reference, roi, config=settings.general_config())
         searcher = GeneralRegistration(engine.prepared, engine.config) if background else engine
-        self._acquire = _reacquisition(searcher.planar, searcher, settings, background)
+        self._search = _reacquisition(searcher.planar, searcher, settings, background)
+        self._acquire = LastGoodFirst(self._search)
         self._tracker = GeneralTracker(engine, self._acquire, rho=rho_coeffs or None)
         self._G: F64 = np.eye(3)
         self._acquired = False  # as `PlanarEstimator._acquired`
@@ -170,17 +172,18 @@ class GeneralEstimator:
 
     @property
     def acquisition(self) -> Reacquisition:
-        return self._acquire
+        return self._search
 
     def assume(self, G: F64) -> None:
         """The general tracker always re-acquires globally (it also estimates ρ* on that frame)."""
 
     def lose(self) -> None:
-        """The last tracked frame's fit is suspect: re-acquire `G` and `e` globally on the next frame (the tracker
-        also does so by itself after `lost_after` failed frames) — unless the fit descends from a global
-        re-acquisition the guard has not trusted yet (`PlanarEstimator.lose`)."""
+        """The last tracked frame's fit is suspect: re-acquire `G` and `e` by the global initialiser only on the next
+        frames (the tracker also re-acquires by itself after `lost_after` failed frames) — unless the fit descends
+        from a global re-acquisition the guard has not trusted yet (`PlanarEstimator.lose`)."""
         if not self._acquired:
             self._tracker.lose()
+            self._acquire.last_good = None
 
     def trust(self) -> None:
         """The pipeline's error guard accepted the last tracked frame."""
@@ -188,27 +191,64 @@ class GeneralEstimator:
 
     def close(self) -> None:
         """End the background re-acquisition, if any (a new reference replaces this estimator)."""
-        self._acquire.close()
+        self._search.close()
 
     def residual(self, grey: NDArray[np.float32]) -> None:
         """Not available for the general model yet (its warp has the parallax term of eq. (2), not `G` alone)."""
         return None
 
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
-        adopted = self._acquire.adopted
+        adopted = self._search.adopted
         result = self._tracker.track(grey)
         tracked = result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
+        message = "" if tracked else f"registration: {result.reason} {result.flags}"
         if tracked:
             self._G = result.G
-            self._acquire.cancel()
-            self._acquired |= self._acquire.adopted > adopted
+            self._search.cancel()
+            self._acquired |= self._search.adopted > adopted
+            if self._acquire.offered:
+                message = "re-acquired by tracking from the last good estimate"
+            self._acquire.last_good, self._acquire.offered = result.G, False
         coeffs = self._tracker.rho_coeffs
         return Estimate(
             tracked, result.G, result.e, float(result.rho_at(control_px)) if tracked else 0.0,
-            int(sum(result.iterations)), _finite(result.residual_rms), _finite(result.inlier_ratio),
-            "" if tracked else f"registration: {result.reason} {result.flags}",
+            int(sum(result.iterations)), _finite(result.residual_rms), _finite(result.inlier_ratio), message,
             [] if coeffs is None else [float(c) for c in coeffs],
         )
+
+
+class LastGoodFirst(Reacquisition):
+    """The general tracker's re-acquisition: `last_good` (the estimator's last tracked `G`) handed over as the start
+    on the first call of a LOST spell (the tracker then registers the frame from it), `search` (the global
+    initialiser, maybe in the background) on the next one, and so on alternately while the search is idle; while
+    a background search runs, its answer. `offered`: the last call handed over `last_good`."""
+
+    def __init__(self, search: Reacquisition) -> None:
+        super().__init__(search.engine)  # no initialiser of its own: `search` has it
+        self.search_with = search
+        self.last_good: F64 | None = None
+        self.offered = False
+
+    @property
+    def enabled(self) -> bool:
+        return self.search_with.enabled
+
+    @property
+    def busy(self) -> bool:
+        return self.search_with.busy
+
+    def __call__(self, current: NDArray[np.float32], tracking_G: F64 | None = None) -> Acquisition:
+        if self.last_good is not None and not self.offered and not self.search_with.busy:
+            self.offered = True
+            return Acquisition("OK", self.last_good, "the last good estimate")
+        self.offered = False
+        return self.search_with(current, tracking_G)
+
+    def cancel(self) -> None:
+        self.search_with.cancel()
+
+    def close(self) -> None:
+        self.search_with.close()
 
 
 def _reacquisition(engine: PlanarRegistration, general: GeneralRegistration | None,
