@@ -187,17 +187,18 @@ def start_services(mode: str, robots: list[str], workdir: Path) -> tuple[list[su
         "registration": {"template_size": [200, 150]},
     }))
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
-    common = [sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), "--log-level", "WARNING"]
+    common = [sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), "--log-level", "ERROR"]
     if mode == "shared":
         port = free_port()
         proc = subprocess.Popen([*common, "--robots", *robots, "--state-dir", str(workdir / "state"),
-                                 "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT, env=env)
+                                 "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
         return [proc], {r: port for r in robots}
     procs, ports = [], {}
     for r in robots:
         ports[r] = free_port()
         procs.append(subprocess.Popen([*common, "--robot", r, "--state-dir", str(workdir / r),
-                                       "--listen", f"tcp/127.0.0.1:{ports[r]}"], cwd=ROOT, env=env))
+                                       "--listen", f"tcp/127.0.0.1:{ports[r]}"], cwd=ROOT, env=env,
+                                      stdout=subprocess.DEVNULL))
     return procs, ports
 
 
