@@ -15,7 +15,7 @@ starts; over that window the parent reads each service process's CPU time (`/pro
 as % of one core) and, at its end, its resident memory (VmRSS). The load average is printed with every row.
 
     .venv/bin/python benchmarks/bench_fleet.py [--robots 1 2 4 8 16] [--modes shared separate] [--seconds 30]
-                                               [--markdown] [--json OUT]
+                                               [--service-shm on|off] [--markdown] [--json OUT]
 """
 
 from __future__ import annotations
@@ -179,12 +179,13 @@ def memory_mb(pid: int) -> dict[str, float]:
     return {"rss": values["VmRSS"], "shmem": values["RssShmem"], "pss": values["Pss"]}
 
 
-def start_services(mode: str, robots: list[str], workdir: Path) -> tuple[list[subprocess.Popen], dict[str, int]]:
-    """The service process(es) and each robot's port."""
+def start_services(mode: str, robots: list[str], workdir: Path,
+                   shm: bool) -> tuple[list[subprocess.Popen], dict[str, int]]:
+    """The service process(es) and each robot's port; `shm`: the services' Zenoh shared memory (the default)."""
     config = workdir / "serve.json"
     config.write_text(json.dumps({
         "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
-        "registration": {"template_size": [200, 150]},
+        "registration": {"template_size": [200, 150]}, "zenoh": {"shm": shm},
     }))
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
     common = [sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), "--log-level", "ERROR"]
@@ -202,10 +203,10 @@ def start_services(mode: str, robots: list[str], workdir: Path) -> tuple[list[su
     return procs, ports
 
 
-def measure(mode: str, n: int, seconds: float) -> dict[str, Any]:
+def measure(mode: str, n: int, seconds: float, shm: bool) -> dict[str, Any]:
     robots = [f"r{i}" for i in range(n)]
     with tempfile.TemporaryDirectory(prefix="ddvs-fleet-") as tmp:
-        services, ports = start_services(mode, robots, Path(tmp))
+        services, ports = start_services(mode, robots, Path(tmp), shm)
         plants = [subprocess.Popen([sys.executable, __file__, "--publish", r, "--port", str(ports[r]),
                                     "--seed", str(i)], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                    text=True) for i, r in enumerate(robots)]
@@ -240,7 +241,7 @@ def measure(mode: str, n: int, seconds: float) -> dict[str, Any]:
                     proc.wait(timeout=60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    return summarise(mode, n, seconds, results, cpu1, cpu0, memory, load0, load1, ready_s)
+    return {**summarise(mode, n, seconds, results, cpu1, cpu0, memory, load0, load1, ready_s), "shm": shm}
 
 
 def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], cpu1: list[float],
@@ -274,6 +275,9 @@ def main() -> None:
     parser.add_argument("--robots", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     parser.add_argument("--modes", nargs="+", choices=["shared", "separate"], default=["shared", "separate"])
     parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--service-shm", choices=["on", "off"], default="on",
+                        help="the services' Zenoh shared memory (on: the default of every node; off: frames are "
+                             "copied over loopback TCP and the plants' shared-memory pools are not mapped)")
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--json", type=Path, help="also write every row (per-robot figures included) here")
     parser.add_argument("--publish", metavar="ROBOT", help=argparse.SUPPRESS)  # the plant process
@@ -286,7 +290,7 @@ def main() -> None:
     rows = []
     for n in args.robots:
         for mode in args.modes:
-            row = measure(mode, n, args.seconds)
+            row = measure(mode, n, args.seconds, args.service_shm == "on")
             print(json.dumps({k: v for k, v in row.items() if k != "per_robot"}), file=sys.stderr, flush=True)
             rows.append(row)
             if args.json:
