@@ -58,7 +58,7 @@ from orchestration.experiment_synthetic import LAW_NAMES
 from sim.arm import ArmSim
 from sim.arm_scene import ArmSceneConfig, StartPose, scene_config_from_dict
 from sim.ground_truth import GroundTruth, ground_truth
-from sim.surfaces import Plane
+from sim.surfaces import Plane, Surface
 from sim.textures import texture_path
 
 F64 = NDArray[np.float64]
@@ -127,7 +127,7 @@ class ArmPlant:
     """`ArmSim` + the bridge's twist → joint velocity map as an `experiment_robustness.Plant`; the reference
     camera pose `T_world_ref` and the poster `surface` give the ground truth at control pixel `p_star`."""
 
-    def __init__(self, sim: ArmSim, bridge: TwistBridge, T_world_ref: F64, surface: Plane,
+    def __init__(self, sim: ArmSim, bridge: TwistBridge, T_world_ref: F64, surface: Surface,
                  p_star: tuple[float, float]) -> None:
         self.sim, self.bridge, self.T_world_ref, self.surface, self.p_star = sim, bridge, T_world_ref, surface, p_star
         self.index = 0

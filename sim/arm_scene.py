@@ -301,9 +301,12 @@ def scene_config_from_dict(config: dict) -> ArmSceneConfig:
 
 
 def _occluder(spec: dict) -> OccluderSpec:
+    offset = [float(v) for v in spec.get("offset", (0.0, 0.0, 0.0))]
+    if len(offset) != 3:
+        raise ValueError(f"occluder offset must be 3 numbers (m, target frame), got {offset}")
     return OccluderSpec(
         width=float(spec["width"]), height=float(spec["height"]), T_target_plate=pose_from_dict(spec.get("pose", {})),
-        offset=tuple(float(v) for v in spec.get("offset", (0.0, 0.0, 0.0))), t_start=float(spec["t_start"]),
+        offset=(offset[0], offset[1], offset[2]), t_start=float(spec["t_start"]),
         t_end=float(spec["t_end"]), target=int(spec.get("target", 0)), texture=spec.get("texture"),
         seed=int(spec.get("seed", 1)),
     )

@@ -80,6 +80,9 @@ def test_scene_keys_for_light_and_occluders_are_parsed_and_checked() -> None:
         scene_config_from_dict({**base, "light": {"direction": [0, 0, 0]}})
     with pytest.raises(ValueError, match="t_end"):
         scene_config_from_dict({**base, "occluders": [{"width": 0.2, "height": 0.1, "t_start": 2.0, "t_end": 1.0}]})
+    with pytest.raises(ValueError, match="offset must be 3 numbers"):
+        scene_config_from_dict({**base, "occluders": [{"width": 0.2, "height": 0.1, "t_start": 0.0, "t_end": 1.0,
+                                                       "offset": [0.1, 0.2]}]})
     with pytest.raises(ValueError, match="occluder target index"):
         ArmSim(scene_config_from_dict({**base, "occluders": [{"width": 0.2, "height": 0.1, "t_start": 0.0,
                                                                "t_end": 1.0, "target": 3}]}))
