@@ -73,7 +73,7 @@ def test_the_servo_pipeline_gives_the_residual_of_its_newest_estimate(texture):
     frame = cv2.warpAffine(reference, np.array([[1.0, 0.0, 3.0], [0.0, 1.0, -2.0]]), (320, 240))
     camera = {"fx": 420.0, "fy": 420.0, "cx": 159.5, "cy": 119.5, "width": 320, "height": 240}
     config = ServiceConfig.model_validate({"intrinsics": camera, "registration": {"template_size": [120, 90]}})
-    pipeline = ServoPipeline(config, Intrinsics(**camera))
+    pipeline = ServoPipeline(config, Intrinsics(**camera), background_reacquisition=False)  # the search in the step
     assert pipeline.residual(frame) is None  # no reference yet
     roi = pipeline.set_reference(reference)
     before = pipeline.residual(frame)
