@@ -11,6 +11,7 @@ last good estimate, such a run stayed LOST for good: the global initialiser cann
 
     .venv/bin/python benchmarks/reacquire_under_occluder.py [--targets planar saddle] [--laws ddvs dvs]
                                                             [--hide-from 150] [--hide-frames 10 30]
+                                                            [--template 70]
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ def main() -> None:
     parser.add_argument("--laws", nargs="+", default=["ddvs"], choices=["ddvs", "dvs"])
     parser.add_argument("--hide-from", type=int, default=150)
     parser.add_argument("--hide-frames", type=int, nargs="+", default=[10, 30])
+    parser.add_argument("--template", type=int, default=None, help="planar template side (default: the shipped one)")
     args = parser.parse_args()
     base = robustness.CONDITIONS["hard_combination"]
     print(f"load average before: {os.getloadavg()}", flush=True)
@@ -62,10 +64,13 @@ def main() -> None:
             base, images=(*base.images, Hidden(args.hide_from, frames)))
         for target in args.targets:
             for law in args.laws:
+                template = {"registration": {"template_size": [args.template] * 2}} if args.template else {}
                 settings = robustness.RobustnessSettings(targets=(target,), laws=(law,),
-                                                         conditions=("hard_combination_hidden",))
+                                                         conditions=("hard_combination_hidden",),
+                                                         overrides=template if target == "planar" else {})
                 run = robustness.run_one(target, law, "paper", "hard_combination_hidden", settings)
-                row = {"hidden_frames": frames, **{k: v for k, v in asdict(run).items() if not isinstance(v, list)}}
+                fields = {k: v for k, v in asdict(run).items() if not isinstance(v, list)}
+                row = {"hidden_frames": frames, "template": args.template, **fields}
                 print(json.dumps(row), flush=True)
     print(f"load average after: {os.getloadavg()}", flush=True)
 
