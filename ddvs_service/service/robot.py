@@ -186,7 +186,8 @@ class RobotServo:
         self._publish_state("started")
 
     def close(self, reason: str) -> None:
-        """Zero twist, a last state naming `reason`, every endpoint undeclared, pending writes flushed."""
+        """Zero twist, a last state naming `reason`, every endpoint undeclared, pending writes flushed, the
+        background re-acquisition ended."""
         try:
             if self._zenoh is not None:
                 self._publish_twist(ZERO6, Time.now())
@@ -201,6 +202,7 @@ class RobotServo:
                                                         received=self.inbox.frames_received))
         finally:
             self.writer.close()
+            self.pipeline.close()
 
     def wait_timeout(self, longest_s: float) -> float:
         """Seconds the loop may sleep for this robot: until its watchdog is due while a non-zero twist stands,
