@@ -44,6 +44,8 @@ class Reacquisition:
                  config: GlobalInitConfig | None = None) -> None:
         self.engine = engine
         self.initializer = None if config is None else GlobalInitializer(config, engine=engine, general=general)
+        if self.initializer is not None:  # its reference side now, with the reference, not in the first search
+            self.initializer.reference_side(engine.prepared.image, engine.prepared.roi)
         self.adopted = 0  # OK results handed to the caller
 
     @property
