@@ -38,6 +38,24 @@ def test_restart_resumes_without_camera_info(tmp_path: Path) -> None:
         assert status["state"] == "SERVOING", status
 
 
+def test_a_reference_frame_that_comes_before_its_camera_info_waits_for_it(tmp_path: Path) -> None:
+    """A camera's image and info travel on two topics (over ROS 2, two links): a `next_frame` reference whose frame
+    arrives before any camera info stays pending, and the first frame after the info becomes the reference."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state").model_copy(update={"intrinsics": None})
+    info = CameraInfo.from_intrinsics(Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H),
+                                      Header(Time.from_ns(1), "camera"))
+    img = scene()
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_reference", source="next_frame").ok
+        assert op.send(img)["state"] == "IDLE"  # answered, no intrinsics yet: still waiting
+        publisher = op.session.declare_publisher(op.keys.key("camera_info"))
+        publisher.put(encode_camera_info(info))
+        publisher.undeclare()
+        assert op.send(img)["state"] == "READY"
+        assert op.command(op="start").ok
+
+
 def test_state_directory_holds_the_active_configuration_from_the_start(tmp_path: Path) -> None:
     port = free_port()
     config = service_config(port, tmp_path / "state")

@@ -233,7 +233,9 @@ class RobotServo:
             log.warning("camera info rejected", extra=fields(error=str(exc)))
 
     def handle_frame(self, arrival: Arrival[zenoh.Sample]) -> None:
-        """Serve one frame taken from this robot's inbox."""
+        """Serve one frame taken from this robot's inbox, with the newest camera info that arrived before it (a
+        camera's info and image come on two topics, possibly over two links, in either order)."""
+        self._handle_info(self.inbox.take_info())
         if self.pipeline.machine.state == ServoState.IDLE and self._pending_reference is None:
             self.counters["idle"] += 1  # nothing to servo to: no twist, no status
             return
@@ -285,6 +287,10 @@ class RobotServo:
 
     def _adopt_next_frame(self, image: NDArray, stamp_ns: int) -> None:
         assert self._pending_reference is not None
+        if self.pipeline.intrinsics is None:
+            log.warning("reference from the next frame waits for a camera info",
+                        extra=fields(hint="configure 'intrinsics' or publish camera info"))
+            return  # kept pending: the camera's info for this frame may still be on its way
         _, roi = self._pending_reference
         self._pending_reference = None
         try:
