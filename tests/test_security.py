@@ -27,6 +27,7 @@ from conftest import free_port
 
 from ddvs_service.protocol import TOPICS, Keys, SessionConfig
 from ddvs_service.protocol.audit import audit_key
+from ddvs_service.protocol.control import process_command_key
 from ddvs_service.protocol.security import (
     ROLE_GRANTS,
     ROLES,
@@ -442,7 +443,8 @@ def test_password_identities_wrong_credentials_refused_and_roles_enforced(certs:
 def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
     acl = router_config(KEYS, certificate_identities(), ["tls/localhost:7447"])["access_control"]
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
-    all_keys = {KEYS.key(name) for name in TOPICS} | {audit_key(KEYS.base)}
+    process_key = process_command_key(KEYS.prefix, KEYS.robot)
+    all_keys = {KEYS.key(name) for name in TOPICS} | {audit_key(KEYS.base), process_key}
     writers: dict[tuple[str, str], set[str]] = {}
     for rule in acl["rules"]:
         assert rule["permission"] == "allow" and set(rule["key_exprs"]) <= all_keys
@@ -456,6 +458,8 @@ def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
     assert writers[("put", KEYS.camera_image)] == writers[("put", KEYS.arm_joint_states)] == {"plant"}
     assert writers[("query", KEYS.servo_command)] == {"operator"}
     assert writers[("declare_queryable", KEYS.servo_command)] == {"service"}
+    assert writers[("query", process_key)] == {"operator"}  # the robot's `ddvs serve` process: add/remove robots
+    assert writers[("declare_queryable", process_key)] == {"service"}
     assert ("put", audit_key(KEYS.base)) not in writers  # only the router itself publishes its audit
     assert not any("observer" in roles for (message, _), roles in writers.items()
                    if message not in ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"))

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from ddvs_service.protocol.audit import audit_key
+from ddvs_service.protocol.control import process_command_key
 from ddvs_service.protocol.keys import TOPICS, Keys
 from ddvs_service.protocol.session import SessionConfig
 
@@ -48,7 +49,8 @@ LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
 @dataclass(frozen=True)
 class Grants:
     """What one role may do, as entries of `TOPICS`: `publish`/`subscribe` samples, `serve`/`query` queryables,
-    hold (`tokens`) or `watch` liveliness tokens."""
+    hold (`tokens`) or `watch` liveliness tokens. `PROCESS_COMMAND` among `serve`/`query` names the command key of
+    the `ddvs serve` process named after the robot (`<prefix>/serve/<robot>/command`: add/remove/list robots)."""
 
     publish: tuple[str, ...] = ()
     subscribe: tuple[str, ...] = ()
@@ -58,13 +60,14 @@ class Grants:
     watch: tuple[str, ...] = ()
 
 
+PROCESS_COMMAND = "process_command"
 _SAMPLE_TOPICS = tuple(n for n in TOPICS if n not in ("servo_command", "liveliness"))
 
 ROLE_GRANTS: dict[str, Grants] = {
     "service": Grants(
         publish=("servo_twist", "servo_status", "servo_config", "servo_state", "servo_reference", "servo_residual"),
         subscribe=("camera_image", "camera_info"),
-        serve=("servo_command",),
+        serve=("servo_command", PROCESS_COMMAND),
         tokens=("liveliness",),
     ),
     "plant": Grants(
@@ -75,7 +78,7 @@ ROLE_GRANTS: dict[str, Grants] = {
         publish=("arm_joint_velocity", "arm_velocity_commands"), subscribe=("servo_twist", "arm_joint_states"),
         watch=("liveliness",),
     ),
-    "operator": Grants(subscribe=_SAMPLE_TOPICS, query=("servo_command",), watch=("liveliness",)),
+    "operator": Grants(subscribe=_SAMPLE_TOPICS, query=("servo_command", PROCESS_COMMAND), watch=("liveliness",)),
     "observer": Grants(subscribe=_SAMPLE_TOPICS, watch=("liveliness",)),
 }
 
@@ -112,7 +115,9 @@ def _rule(rule_id: str, flow: str, messages: Sequence[str], keys: Sequence[str])
 
 def _role_rules(role: str, grants: Grants, keys: Keys) -> list[dict[str, Any]]:
     """The allow rules of one role (ids `<role>/<what>`), flows seen from the router."""
-    k = keys.key
+    def k(name: str) -> str:
+        return process_command_key(keys.prefix, keys.robot) if name == PROCESS_COMMAND else keys.key(name)
+
     pub, sub = [k(n) for n in grants.publish], [k(n) for n in grants.subscribe]
     if role in AUDIT_READERS:
         sub.append(audit_key(keys.base))  # published by the router itself (`ddvs router`), so no role writes it
