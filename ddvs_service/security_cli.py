@@ -1,4 +1,5 @@
-"""`ddvs security init --robot NAME [--roles R1,R2,...] OUT/`: secure one robot's Zenoh network in one step.
+"""`ddvs security init --robot NAME [--robot NAME2 ...] [--process NAME] [--roles R1,R2,...] OUT/`: secure the Zenoh
+network of one robot, or of a fleet (the robots one `ddvs serve` process serves), in one step.
 
 Writes into `OUT/` (docs/security.md, "Securing a robot"):
 - the certificates per purpose (`protocol/pki.py`): `ca/`, `router/` (serverAuth, the router endpoint's host among its
@@ -6,6 +7,10 @@ Writes into `OUT/` (docs/security.md, "Securing a robot"):
 - `router/passwords.txt` (a random password per role, owner-only) for the user/password variant;
 - every configuration (`protocol/security.py::write_configs`): `router-mtls.json5`, `router-password.json5` and per
   role `<role>-mtls.json5`, `<role>-password.json5` (with its password, owner-only), all for robot `<prefix>/<NAME>`.
+
+A fleet: `--robot A --robot B`, the robots `ddvs serve --robots A B` serves; each role gets the same grants on every
+robot's keys, and the service and the operator the command key of the process (`<prefix>/serve/<process>/command`,
+`--process`, default: the first robot, as `ddvs serve` names it).
 
 Paths inside the configurations are `OUT/...` as given: run the nodes from the directory `ddvs security init` ran in
 (or give an absolute OUT, or `--certs-dir` for where the files will be installed). Idempotent: existing certificates
@@ -22,10 +27,15 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    init = sub.add_parser("init", help="certificates, passwords and every Zenoh configuration for one robot",
+    init = sub.add_parser("init", help="certificates, passwords and every Zenoh configuration for a robot or a fleet",
                           description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     init.add_argument("out_dir", metavar="OUT", help="directory to write (created if needed)")
-    init.add_argument("--robot", required=True, help="robot name in the keys (`<prefix>/<robot>/...`)")
+    init.add_argument("--robot", dest="robots", action="append", metavar="NAME",
+                      help="robot name in the keys (`<prefix>/<robot>/...`); repeated: a fleet, the robots one "
+                           "`ddvs serve --robots ...` serves")
+    init.add_argument("--process", metavar="NAME",
+                      help="name of the `ddvs serve` process serving the robots, in its command key "
+                           "<prefix>/serve/NAME/command (default: the first robot, as `ddvs serve` names it)")
     init.add_argument("--prefix", default="ddvs", help="key prefix (default ddvs)")
     init.add_argument("--roles", action="append", metavar="ROLE,...",
                       help="roles to create, comma-separated or repeated (default: every role: "
@@ -60,14 +70,16 @@ def _passwords(path: Path, roles: list[str]) -> dict[str, str]:
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.protocol.keys import Keys
     from ddvs_service.protocol.pki import DEFAULT_ROUTER_NAMES, issue_certificates
-    from ddvs_service.protocol.security import ROLES, Endpoint, write_configs
+    from ddvs_service.protocol.security import ROLES, Endpoint, Fleet, write_configs
 
     roles = [r for item in args.roles or [",".join(ROLES)] for r in item.replace(",", " ").split()]
     try:
         unknown = [r for r in roles if r not in ROLES]
         if unknown or not roles:
             raise ValueError(f"roles {unknown or roles}: expected some of {', '.join(ROLES)}")
-        keys = Keys(args.prefix, args.robot)
+        if not args.robots:
+            raise ValueError("no robot: give --robot NAME (repeated for a fleet: --robot A --robot B)")
+        fleet = Fleet(tuple(Keys(args.prefix, robot) for robot in args.robots), args.process or "")
         host = Endpoint.parse(args.router).host
         cert_dir = args.certs_dir or args.out_dir.rstrip("/")
         out = Path(args.out_dir)
@@ -77,14 +89,21 @@ def run(args: argparse.Namespace) -> int:
             for path in issue_certificates(out, roles, names):
                 print(f"created {path}")
             passwords = _passwords(out / "router" / "passwords.txt", roles)
-        written = write_configs(out, keys, cert_dir, args.router, roles, passwords,
+        written = write_configs(out, fleet, cert_dir, args.router, roles, passwords,
                                 observers_read_frames=not args.no_observer_frames)
     except (RuntimeError, ValueError) as exc:
         raise SystemExit(f"ddvs security init: {exc}") from None
     for path in written:
         print(f"wrote {path}")
     configs = args.out_dir.rstrip("/")
-    print(f"robot {keys.base}: from this directory, start the router with `ddvs router --zenoh-config "
-          f"{configs}/router-mtls.json5 --listen {args.router}` and each node with `--mode client --connect "
-          f"{args.router} --zenoh-config {configs}/<role>-mtls.json5 --prefix {keys.prefix} --robot {keys.robot}`")
+    nodes = (f"`--mode client --connect {args.router} --zenoh-config {configs}/<role>-mtls.json5 --prefix "
+             f"{args.prefix}")
+    if len(fleet.robots) == 1 and fleet.process == fleet.robots[0].robot:
+        nodes += f" --robot {fleet.robots[0].robot}`"
+    else:
+        process = "" if fleet.process == fleet.robots[0].robot else f" --process {fleet.process}"
+        nodes += (f"`, then `ddvs serve --robots {' '.join(k.robot for k in fleet.robots)}{process}` and each "
+                  f"robot's other nodes `--robot NAME`")
+    print(f"{fleet.describe()}: from this directory, start the router with `ddvs router --zenoh-config "
+          f"{configs}/router-mtls.json5 --listen {args.router}` and each node with {nodes}")
     return 0

@@ -31,6 +31,7 @@ from ddvs_service.protocol.control import process_command_key
 from ddvs_service.protocol.security import (
     ROLE_GRANTS,
     ROLES,
+    Fleet,
     Identity,
     TlsFiles,
     certificate_identities,
@@ -467,6 +468,60 @@ def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
     assert not any(key.startswith(other.base) for rule in acl["rules"] for key in rule["key_exprs"])
 
 
+def _grants(acl: dict[str, Any], role: str) -> set[tuple[str, str, str]]:
+    """(flow, message, key) triples a role's rules allow."""
+    return {(flow, message, key) for rule in acl["rules"] if rule["id"].startswith(f"{role}/")
+            for flow in rule["flows"] for message in rule["messages"] for key in rule["key_exprs"]}
+
+
+def test_a_fleet_gets_each_robots_grants_and_its_process_key_and_nothing_else() -> None:
+    """Robots a and b served by one process: each role has on each robot's keys exactly what it has for that robot
+    alone; the process's command key is the service's to serve and the operator's to query; no third robot's key nor
+    another process's, and the rules keep one id per role and flow."""
+    a, b, c = (Keys("ddvs", name) for name in ("fleet_a", "fleet_b", "fleet_c"))
+    fleet = Fleet((a, b))
+    assert fleet.process == "fleet_a" and fleet.command_key == "ddvs/serve/fleet_a/command"  # as `ddvs serve` names it
+    acl = router_config(fleet, certificate_identities(), ["tls/localhost:7447"])["access_control"]
+    alone = {k.robot: router_config(k, certificate_identities(), ["tls/localhost:7447"])["access_control"]
+             for k in (a, b)}
+    ids = [rule["id"] for rule in acl["rules"]]
+    assert len(ids) == len(set(ids)) and set(ids) == {rule["id"] for rule in alone["fleet_a"]["rules"]}
+    assert {p["id"]: p["rules"] for p in acl["policies"]} == {p["id"]: p["rules"] for p in alone["fleet_a"]["policies"]}
+    for role in ROLES:
+        granted = _grants(acl, role)
+        for keys in (a, b):
+            own = {g for g in _grants(alone[keys.robot], role) if g[2].startswith(f"{keys.base}/")}
+            assert own, (role, keys.base)
+            assert {g for g in granted if g[2].startswith(f"{keys.base}/")} == own, (role, keys.base)
+        assert not any(g[2].startswith(f"{c.base}/") for g in granted)
+        serve_keys = {key for _, _, key in granted if key.startswith("ddvs/serve/")}
+        assert serve_keys == ({fleet.command_key} if role in ("service", "operator") else set()), role
+        assert all(key.startswith((f"{a.base}/", f"{b.base}/")) or key == fleet.command_key for _, _, key in granted)
+    assert ("ingress", "declare_queryable", fleet.command_key) in _grants(acl, "service")
+    assert ("ingress", "query", fleet.command_key) in _grants(acl, "operator")
+    assert robots_granted(acl) == {a.base, b.base}
+    named = Fleet((a, b), "cell1")
+    assert {key for _, _, key in _grants(router_config(named, certificate_identities(), ["tls/localhost:7447"])[
+        "access_control"], "operator") if key.startswith("ddvs/serve/")} == {"ddvs/serve/cell1/command"}
+    with pytest.raises(ValueError, match="given twice"):
+        Fleet((a, b, a))
+    with pytest.raises(ValueError, match="at least one robot"):
+        Fleet(())
+    with pytest.raises(ValueError, match="process name 'cell\\*'"):
+        Fleet((a,), "cell*")
+
+
+def test_a_fleets_configurations_name_every_robot_and_cover_each(tmp_path: Path) -> None:
+    fleet = Fleet((Keys("ddvs", "fleet_a"), Keys("ddvs", "fleet_b")))
+    for path in write_configs(tmp_path, fleet, "certs", "tls/localhost:7447"):
+        assert "for ddvs/fleet_a, ddvs/fleet_b served by process 'fleet_a'; do not edit." in path.read_text()
+        zenoh.Config.from_file(str(path))
+    service_file = tmp_path / "service-mtls.json5"
+    assert check_robot_covered(Keys("ddvs", "fleet_a"), service_file)
+    assert check_robot_covered(Keys("ddvs", "fleet_b"), service_file)
+    assert not check_robot_covered(Keys("ddvs", "fleet_c"), service_file)
+
+
 def test_every_topic_of_the_key_table_has_exactly_one_writing_role() -> None:
     """A topic added to `TOPICS` without a role that may write it fails here (the rules would silently deny it)."""
     for name in TOPICS:
@@ -521,6 +576,9 @@ def test_security_init_is_idempotent_and_refuses_bad_input_before_writing(tmp_pa
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == written  # keys, certificates, passwords kept
     for args, error in ((["--robot", "ur5", "--roles", "admin"], "roles ['admin']: expected some of"),
                         (["--robot", "ur*"], "wildcard"),
+                        ([], "no robot: give --robot NAME"),
+                        (["--robot", "ur5", "--robot", "ur6", "--robot", "ur5"], "['ddvs/ur5'] given twice"),
+                        (["--robot", "ur5", "--robot", "ur6", "--process", "cell*"], "process name 'cell*'"),
                         (["--robot", "ur5", "--router", "localhost:7447"], "expected '<protocol>/<address>'")):
         refused = _init(*args, "refused", cwd=tmp_path)
         assert refused.returncode != 0 and error in refused.stderr, refused.stderr

@@ -1,4 +1,4 @@
-"""Zenoh transport security and access control for one robot's servo system (docs/security.md).
+"""Zenoh transport security and access control for the servo system of one robot or of a fleet (docs/security.md).
 
 Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everything else is refused):
 
@@ -13,6 +13,11 @@ Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everythi
 (†) and the ROS 2 mode's `arm/velocity_commands` (`std_msgs/Float64MultiArray`). (‡) and the residual image
 (`servo/residual`), withheld from observers with the frames.
 
+A fleet is the robots one `ddvs serve` process serves (docs/deployment.md, "Many robots, one process"): each role gets
+the same grants on every robot's keys (one rule per role and flow, naming the keys of every robot), and the process's
+command key `<prefix>/serve/<process>/command` (`PROCESS_COMMAND`) is the service's to serve and the operator's to
+query; no other robot's or process's key is allowed.
+
 The rules are generated from `Keys`/`TOPICS` (`access_control`) so that they follow the key table; each role is
 mapped to a Zenoh identity (`Identity`: TLS certificate common names and/or usernames of user/password
 authentication). The rules are enforced by the router that every client connects to (`router_config`); each role's
@@ -21,7 +26,8 @@ client configuration comes from `client_config`. Flows are seen from the router:
 
 `warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS;
 `check_robot_covered` tells whether the router configurations beside a node's own cover its robot.
-`write_configs` writes a robot's configurations (`ddvs security init`, which also issues the certificates: `pki`).
+`write_configs` writes the configurations of a robot or a fleet (`ddvs security init`, which also issues the
+certificates: `pki`).
 """
 
 from __future__ import annotations
@@ -50,7 +56,8 @@ LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
 class Grants:
     """What one role may do, as entries of `TOPICS`: `publish`/`subscribe` samples, `serve`/`query` queryables,
     hold (`tokens`) or `watch` liveliness tokens. `PROCESS_COMMAND` among `serve`/`query` names the command key of
-    the `ddvs serve` process named after the robot (`<prefix>/serve/<robot>/command`: add/remove/list robots)."""
+    the `ddvs serve` process serving the robots (`<prefix>/serve/<process>/command`: add/remove/list robots; the
+    process is named after its first robot unless named otherwise: `Fleet`)."""
 
     publish: tuple[str, ...] = ()
     subscribe: tuple[str, ...] = ()
@@ -108,21 +115,62 @@ def password_identities(prefix: str = "") -> dict[str, Identity]:
     return {role: Identity(usernames=(f"{prefix}{role}",)) for role in ROLES}
 
 
+@dataclass(frozen=True)
+class Fleet:
+    """The robots whose keys a secured network carries, all served by one `ddvs serve` process named `process`
+    (default: the first robot's name, as `service.fleet_config` names it); its command key is under the first robot's
+    prefix. One robot is a fleet of one. Raises `ValueError` for no robot or a robot given twice."""
+
+    robots: tuple[Keys, ...]
+    process: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.robots:
+            raise ValueError("expected at least one robot")
+        bases = [k.base for k in self.robots]
+        twice = sorted({base for base in bases if bases.count(base) > 1})
+        if twice:
+            raise ValueError(f"robots {twice} given twice; expected each robot once")
+        object.__setattr__(self, "process", self.process or self.robots[0].robot)
+        try:
+            Keys(self.robots[0].prefix, self.process)  # the same rules as a robot name
+        except ValueError as exc:
+            raise ValueError(f"process name {self.process!r}: {exc}") from None
+
+    @classmethod
+    def of(cls, keys: Keys | Fleet) -> Fleet:
+        return keys if isinstance(keys, Fleet) else cls((keys,))
+
+    @property
+    def command_key(self) -> str:
+        return process_command_key(self.robots[0].prefix, self.process)
+
+    def describe(self) -> str:
+        """`ddvs/robot0` for one robot served by the process named after it; otherwise every robot and the
+        process (`ddvs/a, ddvs/b served by process 'a'`)."""
+        bases = ", ".join(k.base for k in self.robots)
+        if len(self.robots) == 1 and self.process == self.robots[0].robot:
+            return bases
+        return f"{bases} served by process '{self.process}'"
+
+
 def _rule(rule_id: str, flow: str, messages: Sequence[str], keys: Sequence[str]) -> dict[str, Any]:
     return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": list(messages),
             "key_exprs": sorted(set(keys))}
 
 
-def _role_rules(role: str, grants: Grants, keys: Keys) -> list[dict[str, Any]]:
-    """The allow rules of one role (ids `<role>/<what>`), flows seen from the router."""
-    def k(name: str) -> str:
-        return process_command_key(keys.prefix, keys.robot) if name == PROCESS_COMMAND else keys.key(name)
+def _role_rules(role: str, grants: Grants, fleet: Fleet) -> list[dict[str, Any]]:
+    """The allow rules of one role (ids `<role>/<what>`), flows seen from the router; each names the keys of every
+    robot of `fleet` (the process's command key once)."""
+    def k(names: Sequence[str]) -> list[str]:
+        return [fleet.command_key if name == PROCESS_COMMAND else keys.key(name)
+                for keys in fleet.robots for name in names]
 
-    pub, sub = [k(n) for n in grants.publish], [k(n) for n in grants.subscribe]
-    if role in AUDIT_READERS:
-        sub.append(audit_key(keys.base))  # published by the router itself (`ddvs router`), so no role writes it
-    serve, query = [k(n) for n in grants.serve], [k(n) for n in grants.query]
-    tokens, watch = [k(n) for n in grants.tokens], [k(n) for n in grants.watch]
+    pub, sub = k(grants.publish), k(grants.subscribe)
+    if role in AUDIT_READERS:  # published by the router itself (`ddvs router`), so no role writes it
+        sub.extend(audit_key(keys.base) for keys in fleet.robots)
+    serve, query = k(grants.serve), k(grants.query)
+    tokens, watch = k(grants.tokens), k(grants.watch)
     candidates = [
         ("publish", "ingress", ["put"], pub),
         ("publish-interest", "egress", ["declare_subscriber"], pub),
@@ -150,10 +198,10 @@ def role_grants(observers_read_frames: bool = True) -> dict[str, Grants]:
 
 
 def access_control(
-    keys: Keys, identities: Mapping[str, Identity], observers_read_frames: bool = True
+    keys: Keys | Fleet, identities: Mapping[str, Identity], observers_read_frames: bool = True
 ) -> dict[str, Any]:
-    """The router's `access_control` section: deny by default, allow rules per role of `identities` (roles absent
-    from `identities` get nothing). Raises `ValueError` for an unknown role."""
+    """The router's `access_control` section for one robot (`keys`) or a `Fleet`: deny by default, allow rules per
+    role of `identities` (roles absent from `identities` get nothing). Raises `ValueError` for an unknown role."""
     unknown = set(identities) - set(ROLES)
     if unknown:
         raise ValueError(f"unknown roles {sorted(unknown)}; expected some of {', '.join(ROLES)}")
@@ -170,7 +218,7 @@ def access_control(
             subject["cert_common_names"] = list(ident.cert_common_names)
         if ident.usernames:
             subject["usernames"] = list(ident.usernames)
-        role_rules = _role_rules(role, grants[role], keys)
+        role_rules = _role_rules(role, grants[role], Fleet.of(keys))
         rules.extend(role_rules)
         subjects.append(subject)
         policies.append({"id": f"policy:{role}", "rules": [r["id"] for r in role_rules], "subjects": [subject["id"]]})
@@ -213,7 +261,7 @@ class TlsFiles:
 
 
 def router_config(
-    keys: Keys,
+    keys: Keys | Fleet,
     identities: Mapping[str, Identity],
     listen: Sequence[str],
     tls: TlsFiles | None = None,
@@ -343,16 +391,16 @@ PASSWORD_PLACEHOLDER = "CHANGE-ME-{role}"
 
 def write_configs(
     out_dir: str | Path,
-    keys: Keys,
+    keys: Keys | Fleet,
     cert_dir: str,
     router: str,
     roles: Sequence[str] = ROLES,
     passwords: Mapping[str, str] | None = None,
     observers_read_frames: bool = True,
 ) -> list[Path]:
-    """Write every Zenoh configuration of one robot's secured network into `out_dir`: `router-mtls.json5` (mutual
-    TLS, identities by certificate), `router-password.json5` (server TLS + user/password from
-    `<cert_dir>/router/passwords.txt`), and per role `<role>-mtls.json5` and `<role>-password.json5` client
+    """Write every Zenoh configuration of the secured network of one robot or a `Fleet` into `out_dir`:
+    `router-mtls.json5` (mutual TLS, identities by certificate), `router-password.json5` (server TLS + user/password
+    from `<cert_dir>/router/passwords.txt`), and per role `<role>-mtls.json5` and `<role>-password.json5` client
     configurations. Certificate paths are `<cert_dir>/<role>/...` as written (`pki` layout; Zenoh resolves relative
     paths against the node's working directory). `passwords` (role → password) go into the client files, which are
     then readable by their owner only; without them the files carry `CHANGE-ME-<role>`. Returns the paths written."""
@@ -390,7 +438,7 @@ def write_configs(
     written = []
     for name, (config, comment) in files.items():
         path = out / name
-        header = f"{comment}\nGenerated by `ddvs security init` for {keys.base}; do not edit."
+        header = f"{comment}\nGenerated by `ddvs security init` for {Fleet.of(keys).describe()}; do not edit."
         path.write_text(render_json5(config, header), encoding="utf-8")
         if passwords and name.endswith("-password.json5") and not name.startswith("router"):
             path.chmod(0o600)
@@ -435,6 +483,6 @@ def check_robot_covered(keys: Keys, zenoh_config: str | Path | None, logger: log
         f"robot {keys.base!r} is not covered by the access control of {', '.join(str(p) for p in grants)} (beside "
         f"{zenoh_config}), which grants {granted or 'no robot'}: that router would drop every message of this robot. "
         f"Use the robot those rules were made for, or make rules for this one: `ddvs security init --robot "
-        f"{keys.robot} --prefix {keys.prefix} OUT/`",
+        f"{keys.robot} --prefix {keys.prefix} OUT/` (one --robot per robot of a `ddvs serve` process)",
         extra={"fields": {"robot": keys.base, "granted": granted, "router_configs": [str(p) for p in grants]}})
     return False
