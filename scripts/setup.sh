@@ -56,4 +56,21 @@ else
         say "ERROR: SAPIEN still cannot render after installing Mesa from bookworm-backports"; exit 1
     fi
 fi
+
+# Taichi's offline cache for the shipped service configurations: a first `ddvs serve --config configs/serve/…` loads
+# its kernels instead of compiling them (README, The servo service). Redone when the code or a configuration changed.
+KSTAMP="$VENV/.ddvs-kernels-cached"
+ksum=$(find kernels ddvs_service configs/serve pyproject.toml -name '*.py' -o -name '*.json' -o -name '*.toml' \
+       | LC_ALL=C sort | xargs cat | sha256sum | cut -d' ' -f1)
+if [ -f "$KSTAMP" ] && [ "$(cat "$KSTAMP")" = "$ksum" ]; then
+    say "kernels of configs/serve already in Taichi's offline cache"
+else
+    for config in configs/serve/*.json; do
+        start=$SECONDS
+        "$VENV/bin/ddvs" serve --config "$config" --warmup-only --log-level WARNING 2>/dev/null \
+            || { say "ERROR: compiling the kernels of $config failed (run: ddvs serve --config $config --warmup-only)"; exit 1; }
+        say "compiled the kernels of $config into Taichi's offline cache ($((SECONDS - start)) s)"
+    done
+    echo "$ksum" > "$KSTAMP"
+fi
 say "done"

@@ -81,14 +81,18 @@ class FleetConfig:
             raise ValueError(f"robot {robot!r}: {exc}") from exc
         return config.model_copy(update={"state_dir": self.state_dir_of(robot), "zenoh": self.base.zenoh})
 
+    @property
+    def configured(self) -> dict[str, dict[str, Any]]:
+        """The configured robots, name → own settings (the one robot `base` names when there is no list)."""
+        return {self.base.robot: {}} if self.robots is None else self.robots
+
     def is_configured(self, robot: str) -> bool:
         return robot == self.base.robot if self.robots is None else robot in self.robots
 
     def to_serve(self, changes: FleetChanges) -> tuple[dict[str, ServiceConfig], dict[str, str]]:
         """The robots to serve, name → configuration: the configured ones less those removed at run time, plus
         those added; and name → error for added robots whose persisted settings no longer apply (left out)."""
-        configured = {self.base.robot: {}} if self.robots is None else self.robots
-        wanted = {name: s for name, s in configured.items() if name not in changes.removed} | changes.added
+        wanted = {name: s for name, s in self.configured.items() if name not in changes.removed} | changes.added
         configs, errors = {}, {}
         for name, settings in wanted.items():
             try:

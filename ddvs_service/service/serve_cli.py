@@ -1,4 +1,5 @@
-"""`ddvs serve --config FILE`: run the servo service until SIGTERM/SIGINT (then zero twist, close, exit 0).
+"""`ddvs serve --config FILE`: run the servo service until SIGTERM/SIGINT (then zero twist, close, exit 0);
+`--warmup-only`: compile the configuration's kernels into Taichi's offline cache and exit (`service.startup`).
 
 One process serves the robot the configuration names, or every robot of its `robots` list (or of `--robots`),
 and robots added at run time (`service.fleet_config`, `service.process`).
@@ -27,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     parser.add_argument("--no-warmup", dest="warmup", action="store_false",
                         help="skip compiling the configuration's kernels before serving (the first frame pays)")
+    parser.add_argument("--warmup-only", action="store_true",
+                        help="compile the configured robots' kernels into Taichi's offline cache and exit, without "
+                             "serving or touching the state directory (set-up: the first start is then a warm one)")
     parser.add_argument("--arch", choices=["cpu", "cuda", "vulkan", "gpu"],
                         help="Taichi backend of the kernels (default: $DDVS_TAICHI_ARCH, else cpu); Taichi falls back "
                              "to the CPU when the device is absent, and the log says which one runs")
@@ -89,6 +93,17 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         log.error("configuration refused", extra=fields(error=str(exc)))
         return 2
+    if args.warmup_only:
+        if not args.warmup:
+            log.error("configuration refused", extra=fields(error="--warmup-only and --no-warmup contradict"))
+            return 2
+        from ddvs_service.service.startup import warm_up_configured
+
+        per_robot = warm_up_configured(fleet)
+        for robot, robot_seconds in per_robot.items():
+            log.info("kernels warmed up", extra=fields(robot=robot, seconds=round(robot_seconds, 3)))
+        log.info("warm-up done", extra=fields(seconds=round(sum(per_robot.values()), 3), robots=len(per_robot)))
+        return 0
     if args.fresh:
         shutil.rmtree(base.state_dir, ignore_errors=True)
     stop = threading.Event()

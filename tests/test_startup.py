@@ -1,0 +1,61 @@
+"""`ddvs serve --warmup-only`: the configured robots' kernels compiled into Taichi's offline cache ahead of a start,
+without serving or touching the state directory; a second process finds them there (real Taichi, its own cache)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def serve(config: Path, cache: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
+    env["TI_OFFLINE_CACHE_FILE_PATH"] = str(cache)
+    return subprocess.run([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), *args],
+                          env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
+
+
+def records(log: str) -> list[dict]:
+    return [json.loads(line) for line in log.splitlines() if line.startswith("{")]
+
+
+def cached(cache: Path) -> dict[str, int]:
+    """Taichi's compiled kernels in `cache`: file name → modification time (ns)."""
+    return {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")}
+
+
+@pytest.mark.slow
+def test_warmup_only_fills_the_offline_cache_that_the_next_process_hits(tmp_path: Path) -> None:
+    state, cache = tmp_path / "state", tmp_path / "ticache"
+    config = tmp_path / "serve.json"
+    config.write_text(json.dumps({
+        "robot": "w0", "state_dir": str(state),
+        "registration": {"template_size": [40, 30], "gain_grid": [1, 1], "global_init": False},
+        "robots": [{"robot": "w0"}, {"robot": "w1"}],  # the same settings: compiled once
+    }))
+    first = serve(config, cache, "--warmup-only")
+    assert first.returncode == 0, first.stderr
+    warmed = {r["robot"]: r["seconds"] for r in records(first.stderr) if r["msg"] == "kernels warmed up"}
+    assert set(warmed) == {"w0", "w1"} and warmed["w0"] > 0.0 and warmed["w1"] == 0.0
+    assert [r["robots"] for r in records(first.stderr) if r["msg"] == "warm-up done"] == [2]
+    assert not state.exists()  # nothing served, nothing persisted
+    kernels = cached(cache)
+    assert kernels, "the warm-up left no compiled kernel in the offline cache"
+
+    second = serve(config, cache, "--warmup-only")  # every kernel found: none compiled, none written again
+    assert second.returncode == 0, second.stderr
+    assert cached(cache) == kernels
+
+
+def test_warmup_only_refuses_no_warmup(tmp_path: Path) -> None:
+    config = tmp_path / "serve.json"
+    config.write_text(json.dumps({"robot": "w0", "state_dir": str(tmp_path / "state")}))
+    done = serve(config, tmp_path / "ticache", "--warmup-only", "--no-warmup")
+    assert done.returncode == 2
+    assert any("--warmup-only and --no-warmup" in r.get("error", "") for r in records(done.stderr))
