@@ -35,6 +35,7 @@ from ddvs_service.protocol.security import (
     Identity,
     TlsFiles,
     certificate_identities,
+    check_process_covered,
     check_robot_covered,
     client_config,
     password_identities,
@@ -511,7 +512,11 @@ def test_a_fleet_gets_each_robots_grants_and_its_process_key_and_nothing_else() 
         Fleet((a,), "cell*")
 
 
-def test_a_fleets_configurations_name_every_robot_and_cover_each(tmp_path: Path) -> None:
+def test_a_fleets_configurations_name_every_robot_and_cover_each(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Each robot of the fleet is covered, a third is not; the process's command key is allowed, another process's
+    is not (a `ddvs serve` process named otherwise than the rules would have its commands dropped)."""
     fleet = Fleet((Keys("ddvs", "fleet_a"), Keys("ddvs", "fleet_b")))
     for path in write_configs(tmp_path, fleet, "certs", "tls/localhost:7447"):
         assert "for ddvs/fleet_a, ddvs/fleet_b served by process 'fleet_a'; do not edit." in path.read_text()
@@ -520,6 +525,15 @@ def test_a_fleets_configurations_name_every_robot_and_cover_each(tmp_path: Path)
     assert check_robot_covered(Keys("ddvs", "fleet_a"), service_file)
     assert check_robot_covered(Keys("ddvs", "fleet_b"), service_file)
     assert not check_robot_covered(Keys("ddvs", "fleet_c"), service_file)
+    caplog.clear()
+    with caplog.at_level(logging.ERROR, logger="ddvs.security"):
+        assert check_process_covered("ddvs/serve/fleet_a/command", service_file)
+        assert check_process_covered("ddvs/serve/fleet_b/command", None)  # no router configuration: nothing to check
+        assert caplog.records == []
+        assert not check_process_covered("ddvs/serve/fleet_b/command", service_file)
+    [record] = caplog.records
+    assert re.search(r"process command key 'ddvs/serve/fleet_b/command' is not allowed .* which allows "
+                     r"\['ddvs/serve/fleet_a/command'\].*--process NAME", record.getMessage()), record.getMessage()
 
 
 def test_every_topic_of_the_key_table_has_exactly_one_writing_role() -> None:

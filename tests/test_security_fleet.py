@@ -3,7 +3,8 @@ the rules, the real `ddvs router` enforces them (mutual TLS on a port chosen her
 sf_b` process connects with the service's files. Its process commands (`ddvs/serve/sf_a/command`) answer the operator
 and never the observer, a robot the rules do not cover is refused at `add_robot`, and a covered one is added; robot
 sf_b's frames (a photograph warped by known motions, tests/test_service_node.py; intrinsics from the configuration)
-are answered with twists. The router's log shows that only the observer was denied anything."""
+are answered with twists. The router's log shows that only the observer was denied anything. A process named
+otherwise than the rules allow refuses to start."""
 
 from __future__ import annotations
 
@@ -116,3 +117,20 @@ def test_a_secured_fleet_process_serves_its_robots_and_answers_only_the_operator
         assert code == 0, stderr[-4000:]
     denied = [e for e in audit_lines(log) if e["msg"] == "access denied"]
     assert {(e["identity"], e["action"], e["key"]) for e in denied} == {("observer", "Query", PROCESS_KEY)}, denied
+
+
+def test_ddvs_serve_refuses_a_process_name_the_rules_do_not_allow(tmp_path: Path) -> None:
+    """Rules made for the process named after sf_a, a process started as `--process cell1`: its add_robot,
+    remove_robot and list_robots would all be dropped, so it exits 2 and says how to fix it (the test above is the
+    control: the same rules, the process's default name, served)."""
+    out = tmp_path / "secure"
+    subprocess.run([sys.executable, "-m", "ddvs.cli", "security", "init", "--robot", SERVED[0], "--robot", SERVED[1],
+                    "--configs-only", str(out)], check=True, capture_output=True)
+    config = service_config(0, tmp_path / "state").model_copy(update={"zenoh": SessionConfig(
+        mode="client", connect=["tls/localhost:7447"], zenoh_config=out / "service-mtls.json5")})
+    service = Service(config, tmp_path, "--robots", *SERVED, "--process", "cell1", "--no-warmup")
+    service.proc.wait(timeout=120)
+    code, stderr = service.stop()
+    assert code == 2, stderr[-4000:]
+    assert "process command key 'ddvs/serve/cell1/command' is not allowed" in stderr, stderr[-4000:]
+    assert "['ddvs/serve/sf_a/command']" in stderr and "--process NAME" in stderr

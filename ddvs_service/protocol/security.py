@@ -25,7 +25,8 @@ client configuration comes from `client_config`. Flows are seen from the router:
 `egress` = delivered to it, so a publication needs the publisher's `put` (ingress) and the subscriber's `put` (egress).
 
 `warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS;
-`check_robot_covered` tells whether the router configurations beside a node's own cover its robot.
+`check_robot_covered` tells whether the router configurations beside a node's own cover its robot, and
+`check_process_covered` whether they allow a `ddvs serve` process's command key.
 `write_configs` writes the configurations of a robot or a fleet (`ddvs security init`, which also issues the
 certificates: `pki`).
 """
@@ -456,19 +457,26 @@ def robots_granted(access_control: Mapping[str, Any]) -> set[str]:
             for suffix in suffixes if key.endswith(suffix)}
 
 
-def sibling_router_grants(zenoh_config: str | Path | None) -> dict[Path, set[str]]:
-    """The robots granted by each router configuration (`router*.json5` with access control on) in the directory of a
-    node's Zenoh configuration file, as `ddvs security init` writes them side by side; empty when there is none."""
+def sibling_access_controls(zenoh_config: str | Path | None) -> dict[Path, dict[str, Any]]:
+    """The `access_control` section of each router configuration (`router*.json5`) with access control on, in the
+    directory of a node's Zenoh configuration file, as `ddvs security init` writes them side by side; empty when
+    there is none."""
     if zenoh_config is None:
         return {}
     import zenoh
 
-    grants = {}
+    sections = {}
     for path in sorted(Path(zenoh_config).parent.glob("router*.json5")):
         section = json.loads(zenoh.Config.from_file(str(path)).get_json("access_control"))
         if section.get("enabled"):
-            grants[path] = robots_granted(section)
-    return grants
+            sections[path] = section
+    return sections
+
+
+def sibling_router_grants(zenoh_config: str | Path | None) -> dict[Path, set[str]]:
+    """The robots granted by each router configuration beside a node's Zenoh configuration file
+    (`sibling_access_controls`)."""
+    return {path: robots_granted(section) for path, section in sibling_access_controls(zenoh_config).items()}
 
 
 def check_robot_covered(keys: Keys, zenoh_config: str | Path | None, logger: logging.Logger | None = None) -> bool:
@@ -485,4 +493,29 @@ def check_robot_covered(keys: Keys, zenoh_config: str | Path | None, logger: log
         f"Use the robot those rules were made for, or make rules for this one: `ddvs security init --robot "
         f"{keys.robot} --prefix {keys.prefix} OUT/` (one --robot per robot of a `ddvs serve` process)",
         extra={"fields": {"robot": keys.base, "granted": granted, "router_configs": [str(p) for p in grants]}})
+    return False
+
+
+def check_process_covered(command_key: str, zenoh_config: str | Path | None,
+                          logger: logging.Logger | None = None) -> bool:
+    """False, with the reason logged as an error (`logger`, default `ddvs.security`), when router configurations
+    beside the node's Zenoh configuration file do not allow the command key of a `ddvs serve` process
+    (`<prefix>/serve/<process>/command`): that router would drop every `add_robot`, `remove_robot` and `list_robots`.
+    True when they allow it or when there is none in sight."""
+    sections = sibling_access_controls(zenoh_config)
+    allowed = {key for section in sections.values() for rule in section.get("rules", [])
+               for key in rule.get("key_exprs", [])}
+    if not sections or command_key in allowed:
+        return True
+    robots = set().union(*(robots_granted(section) for section in sections.values()))
+    robot_commands = {f"{base}/{TOPICS['servo_command'].suffix}" for base in robots}  # not a process's key
+    processes = sorted(k for k in allowed if "/serve/" in k and k.endswith("/command") and k not in robot_commands)
+    (logger or logging.getLogger("ddvs.security")).error(
+        f"process command key {command_key!r} is not allowed by the access control of "
+        f"{', '.join(str(p) for p in sections)} (beside {zenoh_config}), which allows {processes or 'no process key'}:"
+        " that router would drop every add_robot, remove_robot and list_robots. Name the process as those rules do "
+        "(`ddvs serve --process NAME`, or `process` in its configuration), or make rules for it: `ddvs security init "
+        "--robot A --robot B --process NAME OUT/`",
+        extra={"fields": {"command_key": command_key, "allowed": processes,
+                          "router_configs": [str(p) for p in sections]}})
     return False

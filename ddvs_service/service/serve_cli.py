@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ddvs_service.logs import fields, setup_logging
     from ddvs_service.protocol.ros_cli import ros_settings_from_args
+    from ddvs_service.protocol.security import check_process_covered
     from ddvs_service.protocol.session import session_config_from_args
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.fleet_config import FleetConfig, read_file
@@ -110,8 +111,8 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     served = ServeProcess(fleet, warmup=args.warmup)
-    if served.uncovered():
-        return 2  # logged: the router configuration beside ours would silently drop everything of those robots
+    if served.uncovered() or not check_process_covered(fleet.command_key, base.zenoh.zenoh_config):
+        return 2  # logged: the router configuration beside ours would silently drop those robots or process commands
     if args.warmup:
         seconds = served.warm_up()
         log.info("warm-up done", extra=fields(seconds=round(seconds, 3), robots=len(served.robots)))
