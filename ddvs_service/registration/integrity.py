@@ -39,7 +39,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from statistics import NormalDist
+from statistics import NormalDist, median
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,13 +80,12 @@ class Integrity:
         self._corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1.0, 1.0, 1.0, 1.0]])
         self._max_jump = max(config.corner_jump_fraction * max(w, h), config.min_corner_jump_px)
         self._scales: deque[float] = deque(maxlen=config.anchor_frames)
+        self._anchor: float | None = None  # `anchor`, updated when a frame is accepted (read twice per frame)
 
     @property
     def anchor(self) -> float | None:
         """Median robust scale of the last accepted frames (grey levels), None before `min_frames` were."""
-        if len(self._scales) < self.config.min_frames:
-            return None
-        return max(float(np.median(self._scales)), self.config.min_anchor)
+        return self._anchor
 
     @property
     def scale_cap(self) -> float | None:
@@ -112,6 +111,8 @@ class Integrity:
         scale = inlier_scale(frame_scale, inlier_ratio)
         if np.isfinite(scale) and scale > 0.0:
             self._scales.append(scale)
+            if len(self._scales) >= self.config.min_frames:
+                self._anchor = max(median(self._scales), self.config.min_anchor)
 
 
 _HALF_NORMAL_MEDIAN = NormalDist().inv_cdf(0.75)  # median of |N(0, 1)|: 1 / 1.4826
