@@ -76,3 +76,17 @@ def test_convergence_needs_consecutive_frames_below_threshold() -> None:
     assert sm.on_frame(FrameOutcome(True, 5e-4)) == ServoState.CONVERGED
     with pytest.raises(ValueError, match="converge_frames"):
         StateMachine(stop_threshold=1e-3, resume_threshold=5e-3, converge_frames=0)
+
+
+def test_convergence_needs_the_scatter_below_its_threshold() -> None:
+    """Issue 20: a mean error below the stop threshold whose frames scatter by more than `scatter_threshold` (or
+    whose window is not yet full: scatter inf) is not CONVERGED; the same mean with a small scatter is."""
+    sm = StateMachine(stop_threshold=1e-3, resume_threshold=5e-3, converge_frames=2, scatter_threshold=2e-3)
+    sm.reference_set()
+    sm.start()
+    for scatter in (np.inf, 1e-2, 3e-3, 1.5e-3, 2.5e-3, 1e-3):
+        assert sm.on_frame(FrameOutcome(True, 8e-3, 4e-4, scatter)) == ServoState.SERVOING and sm.moves
+    assert sm.on_frame(FrameOutcome(True, 8e-3, 4e-4, 1e-3)) == ServoState.CONVERGED and not sm.moves
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="scatter_threshold"):
+            StateMachine(stop_threshold=1e-3, resume_threshold=5e-3, scatter_threshold=bad)

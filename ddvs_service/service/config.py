@@ -90,10 +90,14 @@ class ControlSettings(_Strict):
     saturation (m/s, rad/s) and the stop threshold on the error norm, applied by the service's state machine: CONVERGED
     after `converge_frames` consecutive frames below it (the law itself keeps commanding `Λ ε̄` until then);
     `resume_factor` × stop threshold is the hysteresis threshold above which a CONVERGED servo resumes (the frame's
-    own norm: a disturbance is answered at once). The stop compares the norm of the mean error over the last
+    own norm: a disturbance is answered at once). The stop compares the norm of the mean error ē over the last
     `settle_frames` tracked frames: near the goal a 70×70 template's error
     norm jitters at 1.5–2.3e-3 from frame to frame on clean frames (estimation noise; the camera is 0.5 mm away), so
-    a single frame's norm stops the servo when the noise happens to dip, not when the pose is there."""
+    a single frame's norm stops the servo when the noise happens to dip, not when the pose is there. A mean can hide
+    a scatter as well: the stop also needs the window full (`settle_frames` tracked frames) and the RMS deviation of
+    its errors from their mean, s = √(mean_k ‖ε̄_k − ē‖²) (units of the error), below `scatter_factor` × the stop
+    threshold — an estimate that moves by several thresholds from frame to frame (a biased, noisy fit: a plate over
+    a third of a 70×70 template) is not declared converged wherever its mean happens to read zero."""
 
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
     gains: float | tuple[float, float, float, float, float, float] = 0.4
@@ -105,6 +109,7 @@ class ControlSettings(_Strict):
     resume_factor: float = Field(default=5.0, gt=1)
     converge_frames: int = Field(default=3, ge=1)
     settle_frames: int = Field(default=10, ge=1)
+    scatter_factor: float = Field(default=2.0, gt=0)
 
     def law_config(self) -> ControlConfig:
         """The law's settings; its own stop threshold is 0 because the state machine decides when to stop."""

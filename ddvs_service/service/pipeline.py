@@ -11,6 +11,7 @@ camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOI
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -73,9 +74,10 @@ class ServoPipeline:
         self.config = config
         self.background_reacquisition = background_reacquisition
         self.intrinsics = intrinsics
-        self.machine = StateMachine(config.control.stop_threshold,
-                                    config.control.stop_threshold * config.control.resume_factor,
-                                    config.control.converge_frames)
+        control = config.control
+        self.machine = StateMachine(control.stop_threshold, control.stop_threshold * control.resume_factor,
+                                    control.converge_frames,
+                                    scatter_threshold=control.stop_threshold * control.scatter_factor)
         self.reference: NDArray[np.float32] | None = None
         self.roi: Roi | None = None
         self.rho_coeffs: list[float] = []
@@ -105,6 +107,7 @@ class ServoPipeline:
         self.machine.stop_threshold = config.control.stop_threshold
         self.machine.resume_threshold = config.control.stop_threshold * config.control.resume_factor
         self.machine.converge_frames = config.control.converge_frames
+        self.machine.scatter_threshold = config.control.stop_threshold * config.control.scatter_factor
         self._recent = deque(self._recent, maxlen=config.control.settle_frames)
         if self.reference is not None and registration_changed:
             self._build_estimator(self.reference, config.registration.roi)
@@ -205,7 +208,7 @@ class ServoPipeline:
             est.message = f"{est.message}; {suspect}".strip("; ")
         error = out.error if out is not None else ZERO6
         norm = out.error_norm if out is not None else float("nan")
-        state = self.machine.on_frame(FrameOutcome(out is not None, norm, self._settled_norm(out)))
+        state = self.machine.on_frame(FrameOutcome(out is not None, norm, *self._settled(out)))
         twist = out.twist if (out is not None and self.machine.moves) else ZERO6
         t2 = time.perf_counter()
         return StepResult(
@@ -224,15 +227,20 @@ class ServoPipeline:
         with GATE.hold():
             return self._estimator.residual(to_grey(frame))
 
-    def _settled_norm(self, out: ControlOutput | None) -> float:
-        """Norm of the mean control error over the last `settle_frames` tracked frames (nan for an untracked
-        frame, which also empties the window): what the stop decision compares (a resume compares the frame's own
-        norm with `resume_factor ×` the threshold, so a disturbance is answered at once)."""
+    def _settled(self, out: ControlOutput | None) -> tuple[float, float]:
+        """What the stop decision compares, over the last `settle_frames` tracked frames' control errors ε̄_k: the
+        norm of their mean ‖ē‖ and their scatter s = √(mean_k ‖ε̄_k − ē‖²), the RMS deviation from that mean (inf
+        while the window is not full); (nan, inf) for an untracked frame, which also empties the window. A resume
+        compares the frame's own norm with `resume_factor ×` the threshold, so a disturbance is answered at once."""
         if out is None:
             self._recent.clear()
-            return float("nan")
+            return float("nan"), math.inf
         self._recent.append(np.asarray(out.error, dtype=np.float64))
-        return float(np.linalg.norm(np.mean(self._recent, axis=0)))
+        errors = np.asarray(self._recent)
+        mean = errors.mean(axis=0)
+        full = len(self._recent) == self._recent.maxlen
+        scatter = float(np.sqrt(np.mean(np.sum((errors - mean) ** 2, axis=1)))) if full else math.inf
+        return float(np.linalg.norm(mean)), scatter
 
     def _control(self, est: Estimate) -> ControlOutput | None:
         assert self._law is not None

@@ -10,6 +10,7 @@ Only SERVOING publishes a non-zero twist.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import Enum
 
@@ -29,12 +30,15 @@ class TransitionError(ValueError):
 
 @dataclass
 class FrameOutcome:
-    """What one registered frame says: registration quality, the control-error norm of this frame and the one the
-    stop decision compares (the pipeline's mean over a few frames; this frame's own when not given)."""
+    """What one registered frame says: registration quality, the control-error norm of this frame, and the two
+    figures the stop decision compares: `settled_norm` (the pipeline's norm of the mean error over a few frames; this
+    frame's own when not given) and `scatter` (the RMS deviation of those frames' errors from their mean, same units
+    as the error; `math.inf` while too few frames back the mean, 0 when not given)."""
 
     tracked: bool
     error_norm: float
     settled_norm: float | None = None
+    scatter: float = 0.0
 
 
 @dataclass
@@ -42,7 +46,9 @@ class StateMachine:
     """Servo state with the transitions driven by commands and by frame outcomes.
 
     `stop_threshold` is the error norm below which the servo is CONVERGED, once it stayed below for
-    `converge_frames` consecutive frames (one noisy dip does not stop the arm); `resume_threshold` (> stop) is the norm
+    `converge_frames` consecutive frames (one noisy dip does not stop the arm) with the estimate's `scatter` below
+    `scatter_threshold` on each (a mean below the threshold is no evidence of the pose when the estimates it averages
+    scatter by more than the threshold: issue 20's confident wrong answer); `resume_threshold` (> stop) is the norm
     above which a CONVERGED servo resumes. LOST and CONVERGED servos go back to SERVOING by themselves, a LOST one
     after `confirm_frames` consecutive tracked frames.
     """
@@ -51,6 +57,7 @@ class StateMachine:
     resume_threshold: float
     converge_frames: int = 1
     confirm_frames: int = 3
+    scatter_threshold: float = math.inf
     state: ServoState = ServoState.IDLE
     _below: int = 0
     _tracked: int = 0
@@ -60,6 +67,8 @@ class StateMachine:
             raise ValueError(
                 f"need 0 < stop_threshold < resume_threshold, got {self.stop_threshold} and {self.resume_threshold}"
             )
+        if not self.scatter_threshold > 0.0:
+            raise ValueError(f"scatter_threshold must be > 0, got {self.scatter_threshold}")
         if self.converge_frames < 1:
             raise ValueError(f"converge_frames must be ≥ 1, got {self.converge_frames}")
         if self.confirm_frames < 1:
@@ -99,7 +108,7 @@ class StateMachine:
         if not self.servo_active:
             return self.state
         settled = outcome.error_norm if outcome.settled_norm is None else outcome.settled_norm
-        below = outcome.tracked and settled < self.stop_threshold
+        below = outcome.tracked and settled < self.stop_threshold and outcome.scatter < self.scatter_threshold
         self._below = self._below + 1 if below else 0
         self._tracked = self._tracked + 1 if outcome.tracked else 0
         if not outcome.tracked:
