@@ -10,7 +10,12 @@ The warm-up (the default) compiles the configuration's kernels before the servic
 time each row gives the service process's CPU time (all threads, `/proc/PID/stat`) when it answered alive and right
 after its first twist: on a shared host the wall time grows with the load, the CPU time much less.
 
-    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--gain-grid 1 1] [--model planar] [--markdown]
+`--phases N` adds N in-process breakdowns of the same restart up to the end of the warm-up
+(`benchmarks/startup_phases.py`: imports, `ti.init`, robots, the warm-up's Taichi front end and the rest), each a
+fresh process on the same warm cache: median and range of wall and CPU time per phase.
+
+    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--phases 0] [--gain-grid 1 1] [--model planar]
+        [--markdown]
 """
 
 from __future__ import annotations
@@ -149,11 +154,31 @@ def restart(config: Path, port: int, warmup: bool) -> dict:
             "warm_up_s": warm_up_seconds(log), "load_average": round(os.getloadavg()[0], 2)}
 
 
+def phases(config: Path, runs: int) -> list[dict]:
+    """`runs` breakdowns (`startup_phases`), one row per phase: wall and CPU seconds of each run."""
+    per_run = []
+    for _ in range(runs):
+        spawned_at = time.monotonic()
+        done = subprocess.run([sys.executable, "-m", "benchmarks.startup_phases", str(spawned_at), str(config)],
+                              cwd=ROOT, capture_output=True, text=True, check=True)
+        per_run.append(json.loads(done.stdout.strip().splitlines()[-1])["phases"])
+    rows = [{"phase": p["phase"], "wall_s": [run[i]["wall_s"] for run in per_run],
+             "cpu_s": [run[i]["cpu_s"] for run in per_run]} for i, p in enumerate(per_run[0])]
+    rows.append({"phase": "total", "wall_s": [sum(p["wall_s"] for p in run) for run in per_run],
+                 "cpu_s": [sum(p["cpu_s"] for p in run) for run in per_run]})
+    return rows
+
+
+def spread(values: list[float]) -> str:
+    return f"{np.median(values):.2f} s ({min(values):.2f}–{max(values):.2f})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--gain-grid", type=int, nargs=2, default=[1, 1], metavar=("ROWS", "COLS"))
     parser.add_argument("--model", choices=["planar", "general"], default="planar")
+    parser.add_argument("--phases", type=int, default=0, metavar="N", help="N in-process breakdowns as well")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
     port = free_port()
@@ -165,6 +190,12 @@ def main() -> None:
         "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid, "model": args.model},
     }))
     prepare(config, port)
+    if args.phases:
+        load = os.getloadavg()[0]
+        print_rows(phases(config, args.phases), args.markdown,
+                   ["phase", "wall: median (range)", "CPU: median (range)"],
+                   lambda r: [r["phase"], spread(r["wall_s"]), spread(r["cpu_s"])])
+        print(f"\n{args.phases} runs, load {load:.2f} before, {os.getloadavg()[0]:.2f} after\n")
     rows = [restart(config, port, warmup) for _ in range(args.runs) for warmup in (True, False)]
     print_rows(rows, args.markdown,
                ["warm-up", "process start → alive: wall / CPU", "→ first answer", "→ first non-zero twist: wall / CPU",

@@ -10,10 +10,11 @@ Taichi actually runs on (`cpu` then), so a caller can tell.
 from __future__ import annotations
 
 import ast
+import functools
 import os
 
 import taichi as ti
-from taichi.lang import impl
+from taichi.lang import impl, kernel_impl
 from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext
 
 _ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "gpu": ti.gpu}
@@ -33,6 +34,8 @@ def init(arch: str | None = None) -> str:
             raise RuntimeError(f"Taichi already initialised on {_chosen!r}; cannot switch to {arch!r} in this process")
         return _chosen
     _brief_source_positions()
+    _source_read_once()
+    os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")  # no daily request to Taichi's server from a servo
     ti.init(
         arch=_ARCHS[requested],
         default_fp=ti.f32,
@@ -58,3 +61,12 @@ def _brief_source_positions() -> None:
     paid on every first launch even with the offline cache warm (planar_step: measured with cProfile). Replace the
     formatter by one that names the same file, line and function and quotes the line, without the marker."""
     ASTTransformerContext.get_pos_info = _source_position
+
+
+def _source_read_once() -> None:
+    """Taichi's front end reads a function's source (`inspect.getsourcelines`: the whole file tokenised to find the
+    block) each time it builds the function's tree, which is once per kernel and once per `ti.func` call site with
+    its own template arguments: about a fifth of the front end's time at a start with the offline cache warm
+    (docs/performance.md, Start-up). The source of a loaded module does not change, so read it once per function
+    (Taichi copies the lines it is given and parses a fresh tree from them every time)."""
+    kernel_impl.getsourcelines = functools.cache(kernel_impl.getsourcelines)
