@@ -64,9 +64,10 @@ def run(args: argparse.Namespace) -> int:
 
     # Start-up (imports, Taichi's front end over every kernel) makes some hundred thousand objects that mostly stay:
     # Python's cyclic collector would traverse them again and again (~5 % of a warm start's CPU time, perf). It is
-    # off until the warm-up is done, and what start-up built is then frozen out of later collections (a full one
-    # traverses it in ~0.08 s, a pause for the loop); the few thousand objects of garbage cycles left by start-up
-    # are frozen with it (a few hundred kB, once).
+    # off until the warm-up is done, and what start-up built is then frozen out of later collections (enabled
+    # without that, the first collections would traverse it all, ~0.08 s each: pauses of the loop). Frozen objects
+    # are never collected: the garbage cycles start-up left (a few thousand objects, a few hundred kB) and those of
+    # a robot served from the start, should it be removed at run time, stay; robots added later are collected.
     gc.disable()
     import logging
     import shutil
