@@ -12,7 +12,9 @@ answered when its twist arrived (a twist withheld as stale, or a frame dropped b
 Modes: `shared` — one `ddvs serve --robots r0 … rN-1`; `separate` — N `ddvs serve --robot ri` processes (today's
 deployment). Every plant warms up (its robot answered 30 frames) before a common measuring window of `--seconds`
 starts; over that window the parent reads each service process's CPU time (`/proc/<pid>/stat`, user + system,
-as % of one core) and, at its end, its resident memory (VmRSS). The load average is printed with every row.
+as % of one core) and, at its end, its resident memory (VmRSS). The load average is printed with every row, and
+how many robots publish within 5 ms of one another (`crowd`: each plant keeps its own 30 Hz schedule, so the phases
+its start gave it hold for the whole run, and the frames that meet there wait for each other once every period).
 
     .venv/bin/python benchmarks/bench_fleet.py [--robots 1 2 4 8 16] [--modes shared separate] [--seconds 30]
                                                [--service-shm on|off] [--markdown] [--json OUT]
@@ -63,6 +65,7 @@ W, H, F = 320, 240, 420.0
 CAMERA = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
 RATE_HZ = 30.0
 WARM_UP_FRAMES = 30
+CROWD_WINDOW_MS = 5.0  # `crowd`: about two frames' service on the loop thread
 READY_LIMIT_S = 600.0  # 16 separate services start one Taichi each on 2 shared cores
 
 
@@ -145,9 +148,11 @@ def publish(robot: str, port: int, seed: int) -> None:
         measured = [s for s in stamps if start_ns <= s < end_ns]
         with lock:
             latencies = [(arrivals[s] - s) / 1e6 for s in measured if s in arrivals]
+        angles = 2.0 * np.pi * RATE_HZ * (np.array(measured, dtype=np.int64) % 10**9) / 1e9
+        phase_ms = float(np.angle(np.exp(1j * angles).mean()) % (2.0 * np.pi) / (2.0 * np.pi) * 1e3 / RATE_HZ)
         print(json.dumps({"robot": robot, "published": len(measured), "answered": len(latencies),
-                          "latency_ms": latencies, "final_offset_mm": float(np.linalg.norm(pose[:3, 3]) * 1e3)}),
-              flush=True)
+                          "latency_ms": latencies, "final_offset_mm": float(np.linalg.norm(pose[:3, 3]) * 1e3),
+                          "phase_ms": phase_ms}), flush=True)
     finally:
         sub.undeclare()
         pub.undeclare()
@@ -254,6 +259,7 @@ def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], 
                           "median_ms": round(float(np.median(lat)), 2),
                           "p99_ms": round(float(np.percentile(lat, 99)), 2),
                           "final_offset_mm": round(r["final_offset_mm"], 2)})
+    phases = [r["phase_ms"] for r in results]
     pooled = np.concatenate([np.array(r["latency_ms"]) for r in results if r["latency_ms"]] or [np.array([np.nan])])
     published = sum(r["published"] for r in results)
     answered = sum(r["answered"] for r in results)
@@ -266,8 +272,20 @@ def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], 
         **{f"{kind}_mb": round(sum(m[kind] for m in memory), 1) for kind in ("rss", "shmem", "pss")},
         "cpu_percent": round(100.0 * (sum(cpu1) - sum(cpu0)) / seconds, 1),
         "load_average": [round(load0[0], 2), round(load1[0], 2)], "ready_s": round(ready_s, 1),
+        "crowd_5ms": crowd(phases, CROWD_WINDOW_MS), "phases_ms": sorted(round(p, 1) for p in phases),
         "per_robot": per_robot,
     }
+
+
+def crowd(phases_ms: list[float], window_ms: float) -> int:
+    """The most robots whose frames are published within `window_ms` of one another in each period (phases: each
+    plant's publishing time modulo the frame period, fixed for a run by when its plant started): the frames the
+    loop thread finds waiting together once a period, which sets the tail latency of the run."""
+    period = 1e3 / RATE_HZ
+    ordered = sorted(p % period for p in phases_ms)
+    wrapped = ordered + [p + period for p in ordered]
+    return max((sum(1 for q in wrapped[i:i + len(ordered)] if q - p <= window_ms) for i, p in enumerate(ordered)),
+               default=0)
 
 
 def main() -> None:
@@ -297,11 +315,13 @@ def main() -> None:
                 args.json.write_text(json.dumps(rows, indent=1))
     print_rows(rows, args.markdown,
                ["mode", "robots", "answered", "worst robot answered", "median ms", "p99 ms", "worst robot p99 ms",
-                "RSS MB (of it shared memory)", "PSS MB", "CPU % of a core", "load avg (start→end)"],
+                "RSS MB (of it shared memory)", "PSS MB", "CPU % of a core", "load avg (start→end)",
+                "robots within 5 ms"],
                lambda r: [r["mode"], str(r["robots"]), f"{r['answered']}/{r['published']}",
                           f"{100 * r['worst_robot_answered_fraction']:.1f} %", str(r["median_ms"]), str(r["p99_ms"]),
                           str(r["worst_robot_p99_ms"]), f"{r['rss_mb']} ({r['shmem_mb']})", str(r["pss_mb"]),
-                          str(r["cpu_percent"]), f"{r['load_average'][0]}→{r['load_average'][1]}"])
+                          str(r["cpu_percent"]), f"{r['load_average'][0]}→{r['load_average'][1]}",
+                          str(r["crowd_5ms"])])
 
 
 if __name__ == "__main__":
