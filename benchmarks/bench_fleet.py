@@ -78,10 +78,24 @@ def command(session: Any, keys: Keys, timeout: float = 30.0, **kwargs: object) -
     raise RuntimeError(f"{keys.robot}: the service did not answer")
 
 
+def plant_scene() -> PlanarScene:
+    """The plants' scene: the shipped "boat" poster 0.7 m ahead of the camera."""
+    return PlanarScene(CAMERA, load_texture("boat", POSTER_BLUR_SIGMA), depth=0.7)
+
+
+def start_pose(seed: int) -> np.ndarray:
+    """A plant's random start (4×4, camera in the reference frame): ±1.7° about each axis, ±20 mm along each."""
+    rng = np.random.default_rng(seed)
+    pose = np.eye(4)
+    pose[:3, :3] = so3_exp(rng.uniform(-0.03, 0.03, 3))
+    pose[:3, 3] = rng.uniform(-0.02, 0.02, 3)
+    return pose
+
+
 def publish(robot: str, port: int, seed: int) -> None:
     """Plant process of `robot`: uploads the reference, starts the servo, closes the loop at 30 Hz; prints `ready`
     after the warm-up, reads `T0 SECONDS` (wall clock, s) from stdin, prints its figures as JSON after the window."""
-    scene = PlanarScene(CAMERA, load_texture("boat", POSTER_BLUR_SIGMA), depth=0.7)
+    scene = plant_scene()
     keys = Keys("ddvs", robot)
     session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
     lock = threading.Lock()
@@ -115,10 +129,7 @@ def publish(robot: str, port: int, seed: int) -> None:
             raise SystemExit(f"{robot}: reference refused: {reply.error}")
         if not command(session, keys, op="start").ok:
             raise SystemExit(f"{robot}: start refused")
-        rng = np.random.default_rng(seed)
-        pose = np.eye(4)
-        pose[:3, :3] = so3_exp(rng.uniform(-0.03, 0.03, 3))
-        pose[:3, 3] = rng.uniform(-0.02, 0.02, 3)
+        pose = start_pose(seed)
         window: list[float] = []  # [T0, T1] once told
         threading.Thread(target=lambda: window.extend(map(float, sys.stdin.readline().split())), daemon=True).start()
         stamps: list[int] = []

@@ -3,15 +3,15 @@
 One `RobotServo` with `bench_fleet`'s settings (320×240 frames, 200×150 template, the service's defaults) serves a
 closed-loop plant in lockstep: the plant (same process, a Zenoh session of its own connected over loopback TCP)
 renders the "boat" poster from its pose (`bench_fleet`'s scene and random start), publishes the frame, and waits for
-the twist before integrating it and rendering the next, so the frames are the same on every run once the servo
-moves (`servoed`). The loop thread's work per frame is what `ServeProcess` runs for a frame: the robot's inputs, `handle_frame` (decode,
-registration, control, twist and status out, residual offer). Measured per frame after a warm-up: the loop thread's
-CPU time (`time.thread_time`: the Python side; it waits while a kernel runs), the process's (`time.process_time`:
-Taichi's worker threads, which run the kernels' pixel loops, and the Zenoh threads besides) and wall time, the Taichi
-launches (calls of `kernels.launch.Prepared`), and the stages `handle_frame` reports in its status (`latency_ms`).
-`--profile OUT`: the measured frames again under cProfile (its overhead inflates the totals; the shares are what it
-is for). `--estimates OUT`: every frame's `G` and twist as JSON, to compare two revisions (`--compare A B` prints
-the largest differences, from the first servoed frame on: `servoed`).
+the twist before integrating it and rendering the next, so the frames are the same on every run once the servo moves
+(`servoed`). The loop thread's work per frame is what `ServeProcess` runs for a frame: the robot's inputs,
+`handle_frame` (decode, registration, control, twist and status out, residual offer). Measured per frame after a
+warm-up: the loop thread's CPU time (`time.thread_time`: the Python side; it waits while a kernel runs), the
+process's (`time.process_time`: Taichi's worker threads, which run the kernels' pixel loops, and the Zenoh threads
+besides) and wall time, the Taichi launches (calls of `kernels.launch.Prepared`), and the stages `handle_frame`
+reports in its status (`latency_ms`). `--profile OUT`: the measured frames again under cProfile (its overhead
+inflates the totals; the shares are what it is for). `--estimates OUT`: every frame's `G` and twist as JSON, to
+compare two revisions (`--compare A B` prints the largest differences, from the first servoed frame on: `servoed`).
 
     .venv/bin/python benchmarks/bench_frame_cost.py [--frames 300] [--warm-up 30] [--profile OUT] [--estimates OUT]
     .venv/bin/python benchmarks/bench_frame_cost.py --compare A.json B.json
@@ -36,8 +36,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_fleet import CAMERA, RATE_HZ, free_port  # noqa: E402 - after the path set-up
-from ddvs_service.lie import se3_exp, so3_exp  # noqa: E402
+from benchmarks.bench_fleet import CAMERA, RATE_HZ, free_port, plant_scene, start_pose  # noqa: E402 - after the path set-up
+from ddvs_service.lie import se3_exp  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402
     Command,
     Header,
@@ -55,8 +55,6 @@ from ddvs_service.protocol.upload import encode_upload  # noqa: E402
 from ddvs_service.service.config import ServiceConfig  # noqa: E402
 from ddvs_service.service.robot import RobotServo  # noqa: E402
 from kernels import launch  # noqa: E402
-from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene  # noqa: E402
-from sim.textures import load_texture  # noqa: E402
 
 TWIST_WAIT_S = 5.0
 
@@ -100,7 +98,7 @@ def _serve(robot: RobotServo, service: Any, plant: Any, frames: int, warm_up: in
            profile: Path | None) -> dict[str, Any]:
     robot.open(service)
     keys = Keys("ddvs", "r0")
-    scene = PlanarScene(CAMERA, load_texture("boat", POSTER_BLUR_SIGMA), depth=0.7)
+    scene = plant_scene()
     goal = np.clip(scene.render(), 0, 255).astype(np.uint8)
     for command in (Command(op="set_reference", source="upload", image={"format": "png", "data": encode_upload(goal)}),
                     Command(op="start")):
@@ -118,10 +116,7 @@ def _serve(robot: RobotServo, service: Any, plant: Any, frames: int, warm_up: in
     pub = declare_publisher(plant, keys, "camera_image")
     sub = plant.declare_subscriber(keys.key("servo_twist"), on_twist)
     time.sleep(0.5)  # the sessions meet
-    rng = np.random.default_rng(0)
-    pose = np.eye(4)
-    pose[:3, :3] = so3_exp(rng.uniform(-0.03, 0.03, 3))
-    pose[:3, 3] = rng.uniform(-0.02, 0.02, 3)
+    pose = start_pose(0)
     launches = LaunchCounter()
     profiler = cProfile.Profile() if profile else None
     rows: list[dict[str, Any]] = []
