@@ -32,6 +32,11 @@ else
 fi
 "$VENV/bin/python" -c "import cv2, taichi, zenoh, pinocchio, sapien" 2>/dev/null \
     || { say "ERROR: an installed package fails to import"; exit 1; }
+# The project's own bytecode: an editable install leaves it to the first import, which never writes it where the
+# directory is read-only for the service's user or PYTHONDONTWRITEBYTECODE is set, so every start would compile
+# some 80 modules again (~0.1 s of a restart: benchmarks/README.md, start-up). Up to date: a quick check.
+"$VENV/bin/python" -m compileall -q ddvs ddvs_service kernels clients sim orchestration evaluation >/dev/null \
+    || { say "ERROR: compiling the project's modules to bytecode failed"; exit 1; }
 
 # SAPIEN rendering: probe in a subprocess (cached once it succeeded).
 RSTAMP="$VENV/.ddvs-render-ok"
