@@ -39,7 +39,7 @@ VARIANCE_FLOOR = 0.05  # a window position whose standard deviation is below thi
 FULL = 1.0 - 1e-4  # a sampled usable-map value at least this: all four bilinear neighbours usable
 
 
-def _usable(reference: F32, bounds: tuple[int, int, int, int]) -> F32:
+def usable_pixels(reference: F32, bounds: tuple[int, int, int, int]) -> F32:
     """1 on the ROI's pixels whose 3×3 neighbourhood is unmasked, else 0 (level-sized). A filtered pixel next to a
     masked one can hold a mixture above `MASK_LIMIT` (measured at levels 3 and 4, never further than one pixel)."""
     u0, v0, u1, v1 = bounds
@@ -72,7 +72,7 @@ def coarse_alignment(reference: F32, current: F32, bounds: tuple[int, int, int, 
     box = (2 * half[1] + 1, 2 * half[0] + 1)
     # Box pixel → reference pixel: the inverse of turning by θ about `centre` onto the box centre `half`.
     to_reference = np.stack([similarity(-t, 1.0, (float(half[0]), float(half[1])), centre) for t in thetas])
-    usable = _usable(reference, bounds)
+    usable = usable_pixels(reference, bounds)
     values, _ = sample_through(np.ascontiguousarray(reference * usable), to_reference, box, (0.0, 0.0))
     cover, _ = sample_through(usable, to_reference, box, (0.0, 0.0))
     masks = (cover >= FULL).astype(np.float64)

@@ -22,6 +22,12 @@ class RegistrationConfig:
       (coarsest 25×18 px), enough for 40 px + 20° + 15 % scale from identity.
     - `max_iterations`: Gauss-Newton iterations per level.
     - `gain_grid`: (rows, cols) of the bilinear gain surface S of eq. (4) over the ROI; (1, 1) = one global gain.
+    - `gain_range`: (lowest, highest) value of a gain node of S. `S · I + β` maps the current frame's grey levels
+      (or irradiance) to the reference's, so a physical camera's gain is positive; the solver projects every update
+      of the nodes onto this range (`solver.bounded_gains`). Without the bound a node under an occluder on a dimmed
+      scene went negative (issue 20, README "Robustness"), the surface absorbing the foreign object with an
+      inverted image. 0.02 … 50: a frame 50× brighter or darker than the reference (an 8-bit frame 50× darker
+      keeps 5 grey levels of the target); γ 2.2 raises an encoded ratio to the power 2.2 (3.5× darker: 16).
     - `robust`: M-estimator (Huber k = 1.345 σ, Tukey c = 4.685 σ, or plain least squares); σ = 1.4826 · median |r|,
       never below `scale_floor` grey levels.
     - `min_inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged.
@@ -59,6 +65,7 @@ class RegistrationConfig:
     levels: int = 8
     max_iterations: int = 30
     gain_grid: tuple[int, int] = (1, 1)
+    gain_range: tuple[float, float] = (0.02, 50.0)
     robust: RobustLoss = "huber"
     min_inlier_ratio: float = 0.5
     min_valid_ratio: float = 0.3
@@ -88,6 +95,9 @@ class RegistrationConfig:
             raise ValueError(
                 f"gain_grid must be (rows, cols) with each in 1..{MAX_GAIN_NODES_PER_AXIS}, got {rows}×{cols}"
             )
+        low, high = self.gain_range
+        if not 0.0 < low < high < float("inf"):
+            raise ValueError(f"gain_range must be (low, high) with 0 < low < high < inf, got {self.gain_range}")
         if self.robust not in ROBUST_CODES:
             raise ValueError(f"robust must be one of {sorted(ROBUST_CODES)}, got {self.robust!r}")
         for name in ("min_inlier_ratio", "min_valid_ratio", "max_step_fraction"):

@@ -24,8 +24,8 @@ refined with ρ* free, and the lowest robust cost wins; `margin` is the relative
 epipole direction, which the notes measured at 9 % at the paper's start and < 0.1 % near the equilibrium.
 
 Update at pyramid level l (level pixels, `D_l` of `images`): `G_l ← M G_l`, `e_l ← M e_l + N⁻¹ δe'`,
-`M = N⁻¹ exp(Σ xᵢ Aᵢ) N` (left increment, Jacobian from `kernels.general_step`), `c ← c + δc`, `S ← S + δS`,
-`β ← β + δβ`; then `(G, e) ← (G, e) / det(G)^(1/3)`.
+`M = N⁻¹ exp(Σ xᵢ Aᵢ) N` (left increment, Jacobian from `kernels.general_step`), `c ← c + δc`, `S ← S + δS`
+within `config.base.gain_range` (`solver.bounded_gains`), `β ← β + δβ`; then `(G, e) ← (G, e) / det(G)^(1/3)`.
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ from ddvs_service.registration.solver import (
     LevelOutcome,
     NormalEquations,
     Reduced,
+    bounded_gains,
     coarse_to_fine,
     gauss_newton,
     in_sequence,
@@ -304,7 +305,8 @@ class GeneralRegistration:
         G_l = M @ level.D @ state.G @ level.D_inv
         e_l = M @ level.D @ state.e + level.N_inv @ d["e"]
         c = state.c + d["rho"] if d["rho"].size else state.c.copy()
-        new = _State(level.D_inv @ G_l @ level.D, level.D_inv @ e_l, c, state.gains + d["S"].reshape(self.grid),
+        new = _State(level.D_inv @ G_l @ level.D, level.D_inv @ e_l, c,
+                     bounded_gains(state.gains, d["S"], self.config.base),
                      state.beta + float(d["beta"][0]), state.scale)
         _normalise(new)
         return new

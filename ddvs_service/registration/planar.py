@@ -5,10 +5,11 @@ Minimises `½ Σ ρ(S(p*) · I(w(G, p*)) + β − I*(p*))` over the ROI with the
 coarse to fine over the pyramid of a `PreparedReference`. The model: unknowns `ParamLayout.planar` (8 sl(3)
 coordinates, the gains, the bias); updates `G ← G · N⁻¹ exp(Σ xᵢ Aᵢ) N` at each level (`Aᵢ` = `lie.SL3_GENERATORS`,
 `N` the level's normalisation `q = (p − c) / s` around the ROI centre, which keeps the 8 unknowns equally scaled;
-`N⁻¹ exp(·) N` is itself in SL(3)), `S ← S + δS`, `β ← β + δβ`; the step is the motion of the ROI corners. The
-robust scale σ = 1.4826 · median |r| is taken from the previous evaluation (the first one of a cold start uses plain
-least squares); a caller may cap the σ the weights and the inlier count use (`run(scale_cap=…)`: the tracker anchors
-it at its last good frames, `registration.integrity`), while the result reports the σ measured on the frame.
+`N⁻¹ exp(·) N` is itself in SL(3)), `S ← S + δS` within `config.gain_range` (`solver.bounded_gains`), `β ← β + δβ`;
+the step is the motion of the ROI corners. The robust scale σ = 1.4826 · median |r| is taken from the previous
+evaluation (the first one of a cold start uses plain least squares); a caller may cap the σ the weights and the
+inlier count use (`run(scale_cap=…)`: the tracker anchors it at its last good frames, `registration.integrity`),
+while the result reports the σ measured on the frame.
 
 `G` maps reference pixels to current pixels, full-image 0-based pixel centres; `roi = (x, y, w, h)` in reference
 pixels covers columns x … x + w − 1 and rows y … y + h − 1.
@@ -22,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import sl3_exp, sl3_normalize
-from ddvs_service.registration.coarse_search import coarse_alignment
+from ddvs_service.registration.coarse_search import coarse_alignment, usable_pixels
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, checked_grey
 from ddvs_service.registration.layout import ParamLayout
@@ -32,6 +33,7 @@ from ddvs_service.registration.solver import (
     LevelOutcome,
     NormalEquations,
     Reduced,
+    bounded_gains,
     coarse_to_fine,
     gauss_newton,
     in_sequence,
@@ -41,7 +43,6 @@ from ddvs_service.registration.solver import (
 )
 from kernels.launch import Prepared
 from kernels.planar_step import (
-    MASK_LIMIT,
     PARAMS_BANDS,
     PARAMS_BETA,
     PARAMS_G,
@@ -224,7 +225,10 @@ class PlanarRegistration:
         p[PARAMS_GAINS:] = state.gains.reshape(-1)
 
     def _match_moments(self, level: Level, ref: F32, cur: F32, state: _State) -> None:
-        """Set a uniform gain and the bias so that `S·I(w(G, p*)) + β` has the mean and spread of `I*` over the ROI."""
+        """Set a uniform gain and the bias so that `S·I(w(G, p*)) + β` has the mean and spread of `I*` over the ROI
+        (the gain within `config.gain_range`, the bias then matching the means), from the reference pixels whose
+        neighbourhood is unmasked (`coarse_search.usable_pixels`: a coarse level's pixel next to a masked one can hold
+        a mixture with the masked value, −78 000 grey levels measured at level 3, which made the gain 479)."""
         from kernels.planar_step import render_compensated
 
         state.gains[:] = 1.0
@@ -234,10 +238,10 @@ class PlanarRegistration:
         u0, v0, u1, v1 = level.bounds
         warped = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
         render_compensated(cur, self._params, warped, self.grid[0], self.grid[1])
-        both = np.isfinite(warped) & (ref[v0 : v1 + 1, u0 : u1 + 1] > MASK_LIMIT)
+        both = np.isfinite(warped) & (usable_pixels(ref, level.bounds)[v0 : v1 + 1, u0 : u1 + 1] > 0.0)
         a, b = ref[v0 : v1 + 1, u0 : u1 + 1][both], warped[both]
         if a.size > 1 and b.std() > 1e-3:
-            gain = float(a.std() / b.std())
+            gain = float(np.clip(a.std() / b.std(), *self.config.gain_range))
             state.gains[:] = gain
             state.beta = float(a.mean() - gain * b.mean())
 
@@ -304,7 +308,7 @@ class _PlanarLevel:
 
     def accept(self, candidate: tuple[F64, F64, F64]) -> None:
         self.G_l, self.corners, delta = candidate
-        self.state.gains = self.state.gains + delta[self._sl_S].reshape(self.engine.grid)
+        self.state.gains = bounded_gains(self.state.gains, delta[self._sl_S], self.engine.config)
         self.state.beta = self.state.beta + float(delta[self._sl_b][0])
 
 

@@ -11,7 +11,8 @@ by a step. Each iteration (eq. (5), robust ESM):
 3. the reduced normal equations; degenerate (textureless ROI) when a diagonal entry is not positive or the
    diagonally scaled matrix's reciprocal condition number is below `DEGENERATE_RCOND`;
 4. the step `δ = −H⁻¹ g`, scaled down when it moves the model's probe points by more than `max_step_fraction` of
-   the ROI size;
+   the ROI size; the gain nodes' part of it projected onto `config.gain_range` by the engine's update
+   (`bounded_gains`: a physical camera's gain is positive);
 5. converged when the motion still to come (`remaining_motion` of the steps so far) is below the tolerance.
 """
 
@@ -173,6 +174,15 @@ def gauss_newton(
                                           f"< {tolerance:g} px", False)
     return LevelOutcome(config.max_iterations, False,
                         f"max_iterations ({config.max_iterations}) reached at level {level_index}", False)
+
+
+def bounded_gains(gains: F64, step: F64, config: RegistrationConfig) -> F64:
+    """The gain nodes of eq. (4) after the update `step` (any shape with `gains.size` entries), projected onto
+    `config.gain_range`: the update of both engines. A projected Gauss-Newton step: a node the data pull below the
+    lowest gain (e.g. one under an occluder, whose pixels the robust weights mostly reject) stays there while the
+    geometry and the other nodes are solved again at the next iteration."""
+    low, high = config.gain_range
+    return cast(F64, np.clip(gains + np.reshape(step, gains.shape), low, high))
 
 
 def in_sequence(*phases: Callable[[], LevelOutcome]) -> LevelOutcome:
