@@ -17,7 +17,8 @@ how many robots publish within 5 ms of one another (`crowd`: each plant keeps it
 its start gave it hold for the whole run, and the frames that meet there wait for each other once every period).
 
     .venv/bin/python benchmarks/bench_fleet.py [--robots 1 2 4 8 16] [--modes shared separate] [--seconds 30]
-                                               [--service-shm on|off] [--markdown] [--json OUT]
+                                               [--service-shm on|off] [--realtime-priority P] [--markdown]
+                                               [--json OUT]
 """
 
 from __future__ import annotations
@@ -257,7 +258,8 @@ def measure(mode: str, n: int, seconds: float, shm: bool) -> dict[str, Any]:
                     proc.wait(timeout=60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    return {**summarise(mode, n, seconds, results, cpu1, cpu0, memory, load0, load1, ready_s), "shm": shm}
+    return {**summarise(mode, n, seconds, results, cpu1, cpu0, memory, load0, load1, ready_s), "shm": shm,
+            "realtime_priority": os.sched_getparam(0).sched_priority}
 
 
 def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], cpu1: list[float],
@@ -307,6 +309,10 @@ def main() -> None:
     parser.add_argument("--service-shm", choices=["on", "off"], default="on",
                         help="the services' Zenoh shared memory (on: the default of every node; off: frames are "
                              "copied over loopback TCP and the plants' shared-memory pools are not mapped)")
+    parser.add_argument("--realtime-priority", type=int, metavar="1-99",
+                        help="the whole chain (this process, the services and the plants it starts, which inherit "
+                             "it) under SCHED_FIFO at this priority: what the process does when it gets the cores "
+                             "of a host busy with other work (root or CAP_SYS_NICE)")
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--json", type=Path, help="also write every row (per-robot figures included) here")
     parser.add_argument("--publish", metavar="ROBOT", help=argparse.SUPPRESS)  # the plant process
@@ -316,6 +322,8 @@ def main() -> None:
     if args.publish:
         publish(args.publish, args.port, args.seed)
         return
+    if args.realtime_priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
     rows = []
     for n in args.robots:
         for mode in args.modes:
