@@ -7,9 +7,10 @@ thread until it returns), so serialising the launches costs no parallelism.
 
 `GATE` is the process-wide lock. A thread that answers frames holds it with `GATE.hold()` around its Taichi work
 (one frame's registration: milliseconds). A background thread (re-acquisition) holds it with `GATE.background()`
-around a long job and calls `GATE.checkpoint()` between kernel launches: when a `hold()` is waiting, the background
-thread hands the lock over there and takes it back afterwards, so a frame waits at most for the work between two
-checkpoints, never for the whole job. Both are re-entrant on the thread that holds the lock (a job run on the loop
+around a long job and calls `GATE.checkpoint()` between kernel launches and between its longer numpy steps (the
+lock is held over them too): when a `hold()` is waiting, the background thread hands the lock over there and takes
+it back afterwards, so a frame waits at most for the work between two checkpoints (one launch or one step, a few
+milliseconds), never for the whole job. Both are re-entrant on the thread that holds the lock (a job run on the loop
 thread itself passes its checkpoints straight through). `longest_wait_s` records the longest a `hold()` waited
 for the lock — the figure to keep well under a frame period.
 """

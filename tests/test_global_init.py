@@ -213,3 +213,21 @@ def test_a_large_occluder_does_not_make_a_wrong_warp_ok(scene: PlanarScene) -> N
     assert found.winner is not None and warp_rms(found.winner.refinement.G, H, ROI) > 5.0  # the wrong warp
     unchecked = GlobalInitializer(GlobalInitConfig(trimmed_tolerance=1.0), engine=engine)
     assert unchecked.initialize(reference, ROI, current).status == "OK"  # what happened without the check
+
+
+def test_photometric_scores_in_chunks_equal_each_alone(scene: PlanarScene) -> None:
+    """`photometric_scores` scores a stack `SCORE_CHUNK` values at a time (a frame waiting for the Taichi gate goes
+    first between chunks): a stack spanning several chunks, some samplings partly outside the image, scores exactly
+    as each sampling alone."""
+    from ddvs_service.registration.global_cost import SCORE_CHUNK, photometric_score, photometric_scores, sample_through
+
+    backend.init()
+    image = scene.render()
+    x, y, w, h = 60, 45, 200, 150
+    Gs = np.stack([similarity(np.radians(10.0 * k), 1.0 + 0.05 * k, (159.5, 119.5), (159.5 + 15 * k, 119.5))
+                   for k in range(7)])
+    sampled, valid = sample_through(image, Gs, (h, w), (x, y))
+    assert len(sampled) > SCORE_CHUNK // (w * h) and valid.min() == 0.0  # several chunks; pixels out of view
+    template = image[y : y + h, x : x + w]
+    assert photometric_scores(template, sampled, valid) == [photometric_score(template, s, v)
+                                                            for s, v in zip(sampled, valid, strict=True)]

@@ -22,6 +22,7 @@ from kernels.global_warp import sample_points, warp_homographies
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 MIN_VISIBLE_PIXELS = 16
+SCORE_CHUNK = 1 << 16  # sampled values scored between two checkpoints of the Taichi gate (about a millisecond)
 
 
 @dataclass(frozen=True)
@@ -60,10 +61,21 @@ def sample_at(image: F32, points: F64, shape: tuple[int, int]) -> tuple[F32, F32
 
 
 def photometric_scores(template: F32, sampled: F32, valid: F32, kappa: float = 0.5) -> list[PhotometricScore]:
-    """Scores of a stack of current-image samplings `sampled` (N, h, w) with masks `valid` against `template` (h, w)."""
+    """Scores of a stack of current-image samplings `sampled` (N, h, w) with masks `valid` against `template` (h, w),
+    `SCORE_CHUNK` sampled values at a time (each sampling's score is its own: the chunks change no figure)."""
     if sampled.ndim != 3 or sampled.shape[1:] != template.shape or valid.shape != sampled.shape:
         raise ValueError(f"expected sampled and valid of shape (N, {template.shape}), "
                          f"got sampled {sampled.shape}, valid {valid.shape}")
+    rows = max(1, SCORE_CHUNK // template.size)
+    scores: list[PhotometricScore] = []
+    for start in range(0, len(sampled), rows):
+        GATE.checkpoint()  # a frame waiting for Taichi goes first between chunks (`kernels.exclusive`)
+        scores += _scores(template, sampled[start : start + rows], valid[start : start + rows], kappa)
+    return scores
+
+
+def _scores(template: F32, sampled: F32, valid: F32, kappa: float) -> list[PhotometricScore]:
+    """`photometric_scores` of one chunk of samplings (shapes checked)."""
     n = template.size
     m = (valid > 0.5).reshape(len(sampled), n).astype(np.float64)
     t = template.reshape(1, n).astype(np.float64)
@@ -129,6 +141,7 @@ def trimmed_score(template: F32, sampled: F32, valid: F32, kept: float, kappa: f
     n_keep = max(MIN_VISIBLE_PIXELS, round(kept * n_visible))
     r = np.zeros_like(t)
     for _ in range(3):
+        GATE.checkpoint()
         tm, cm = t[use].mean(), c[use].mean()
         var_c = float(((c[use] - cm) ** 2).sum())
         gain = max(float(((t[use] - tm) * (c[use] - cm)).sum()), 0.0) / var_c if var_c > 0 else 0.0
@@ -140,6 +153,7 @@ def trimmed_score(template: F32, sampled: F32, valid: F32, kept: float, kappa: f
     out = (visible & ~use).astype(np.float32)
     if not out.any():
         return OccludedScore(cost=cost, coherence=1.0, kept=kept)
+    GATE.checkpoint()
     box = np.ones(COHERENCE_BOX) / COHERENCE_BOX
     near = np.apply_along_axis(np.convolve, 0, np.apply_along_axis(np.convolve, 1, out, box, "same"), box, "same")
     return OccludedScore(cost=cost, coherence=float(near[out > 0].mean()), kept=kept)

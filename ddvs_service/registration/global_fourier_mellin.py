@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from ddvs_service.registration.global_cost import PhotometricScore, photometric_scores, sample_through
 from ddvs_service.registration.images import build_pyramid, level_matrix
+from kernels.exclusive import GATE
 from kernels.logpolar import logpolar_resample
 
 F32 = NDArray[np.float32]
@@ -82,6 +83,7 @@ def log_polar(spectrum: F32, cfg: FourierMellinConfig) -> F32:
     lo, hi = cfg.rho_range
     dlog = np.log(hi / lo) / (cfg.n_rho - 1)
     out = np.empty((cfg.n_rho, cfg.n_theta), np.float32)
+    GATE.checkpoint()
     logpolar_resample(np.ascontiguousarray(spectrum), out, float(np.log(lo)), float(dlog), float(np.pi / cfg.n_theta))
     out -= out.mean(axis=1, keepdims=True)
     return out * np.hanning(cfg.n_rho).astype(np.float32)[:, None]
@@ -225,6 +227,7 @@ class TranslationSearch:
         padded = np.zeros(self.shape, np.float32)
         padded[half : half + Hc, half : half + Wc] = current - current.mean()
         self.spectrum = np.fft.rfft2(padded)
+        GATE.checkpoint()  # a frame waiting for Taichi goes first after each transform (`kernels.exclusive`)
         self.spectrum_sq = np.fft.rfft2(padded * padded)
         self.var_floor = (0.05 * float(current.std())) ** 2
         self._local_std: dict[float, F32] = {}
@@ -241,6 +244,7 @@ class TranslationSearch:
             F = np.conj(np.fft.rfft2(mask, s=self.shape))
             n = float(mask.sum())
             s1 = np.fft.irfft2(self.spectrum * F, s=self.shape)
+            GATE.checkpoint()
             s2 = np.fft.irfft2(self.spectrum_sq * F, s=self.shape)
             self._local_std[scale] = np.sqrt(np.maximum(s2 - s1 * s1 / n, n * self.var_floor)).astype(np.float32)
         return self._local_std[scale]
@@ -260,6 +264,7 @@ class TranslationSearch:
         ch, cw = self.shape
         found = []
         for i, (theta, scale) in enumerate(rotations_scales):
+            GATE.checkpoint()  # one candidate's transforms between checkpoints, not all of them
             if norms[i] == 0.0:
                 continue
             # one candidate at a time: the batched transform is slower (its complex arrays leave the cache)
@@ -328,6 +333,7 @@ class SearchPair:
     def build(reference: SearchReference, current: F32) -> SearchPair:
         """The current image's pyramid down to one level below the search level (same size as the reference)."""
         pyramid = build_pyramid(current, reference.level + 2)
+        GATE.checkpoint()
         return SearchPair(reference, pyramid[reference.level], pyramid[reference.level + 1])
 
     @property

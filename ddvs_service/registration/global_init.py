@@ -313,6 +313,7 @@ class GlobalInitializer:
         side = self.reference_side(ref, roi)
         search = SearchPair.build(side.search, cur)
         translation = TranslationSearch(search.current, search.template, fm.scale_range[1])
+        GATE.checkpoint()  # between steps too, a frame waiting for Taichi goes first (`kernels.exclusive`)
         first_level = max(0, side.search.level - 1)
         extra = self._features(search, ref, roi, cur)
         screened: list[tuple[float, F64, Hypothesis]] = []  # (screened cost, screened G, start)
@@ -330,6 +331,7 @@ class GlobalInitializer:
             GATE.checkpoint()  # between stages, a frame waiting for Taichi goes first (`kernels.exclusive`)
             raw = sorted(stage_hypotheses() + extra, key=lambda h: h.score.cost)
             extra, n_raw = [], n_raw + len(raw)
+            GATE.checkpoint()
             seen = [G for _, G, _ in screened]
             fresh = [hyp for hyp in raw if all(rms_distance(hyp.G, G, side.points) > cfg.distinct_px for G in seen)]
             limit = cfg.max_screened if index == 0 else cfg.max_screened_later
@@ -340,6 +342,7 @@ class GlobalInitializer:
             order = sorted(range(len(screened)), key=lambda i: screened[i][0])
             best = _distinct([(screened[i][1], i) for i in order], cfg.final_refined, side.points, cfg.distinct_px)
             for rank, i in enumerate(best):
+                GATE.checkpoint()
                 if i not in refined:
                     _, G, hyp = screened[i]
                     refined[i] = _refine(side, cur, G, hyp, first_level, rival=rank > 0)
@@ -395,6 +398,7 @@ def _occlusion_check(result: InitResult, side: ReferenceSide, cfg: GlobalInitCon
 
     own = trimmed(best)
     for other in result.candidates[1:]:
+        GATE.checkpoint()  # a frame waiting for Taichi goes first (`kernels.exclusive`)
         if (other.score.visible >= cfg.min_visible
                 and rms_distance(other.refinement.G, best.refinement.G, side.points) > cfg.distinct_px):
             cost = trimmed(other)

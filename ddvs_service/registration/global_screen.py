@@ -169,6 +169,7 @@ class BatchScreen:
             batch = np.ascontiguousarray(params[idx])
             GATE.checkpoint()  # a frame waiting for Taichi goes first (`kernels.exclusive`)
             screen_step(ref, cur, batch, level.frame, out[: idx.size])
+            GATE.checkpoint()  # and again before the numpy work on the sums (`kernels.exclusive`)
             acc = out[: idx.size, :N_SUMS].astype(np.float64)
             n_valid = acc[:, N_TRIANGLE + N_UNKNOWNS]
             H = np.zeros((idx.size, N_UNKNOWNS, N_UNKNOWNS))
