@@ -53,9 +53,11 @@ class BackgroundReacquisition(Reacquisition):
 
     @property
     def busy(self) -> bool:
-        """True while a search runs or a frame waits for one."""
+        """True while a search runs, a frame waits for one, or an OK result waits to be handed over: the next call
+        answers from the search, so a caller need not try anything else first (a tracker's attempt from its last
+        good estimate would cost the frame a full registration budget when it fails)."""
         with self._cond:
-            return self._searching()
+            return self._searching() or (self._result is not None and self._result.status == "OK")
 
     def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
         """A finished search's result, or LOST while searching; `current` is searched next unless an OK result is
