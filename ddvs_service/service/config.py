@@ -97,7 +97,9 @@ class ControlSettings(_Strict):
     a scatter as well: the stop also needs the window full (`settle_frames` tracked frames) and the RMS deviation of
     its errors from their mean, s = √(mean_k ‖ε̄_k − ē‖²) (units of the error), below `scatter_factor` × the stop
     threshold — an estimate that moves by several thresholds from frame to frame (a biased, noisy fit: a plate over
-    a third of a 70×70 template) is not declared converged wherever its mean happens to read zero."""
+    a third of a 70×70 template) is not declared converged wherever its mean happens to read zero. The bound also
+    keeps an unbiased but very noisy estimate SERVOING near the goal: a larger factor trades that guarantee for a
+    stop under heavy image noise (README, Robustness)."""
 
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
     gains: float | tuple[float, float, float, float, float, float] = 0.4
