@@ -25,6 +25,7 @@ from kernels.planar_step import (
     PARAMS_ROI,
     PARAMS_SIGMA,
     PARAMS_SPAN,
+    SATURATED,
     TUKEY_C,
 )
 
@@ -89,7 +90,7 @@ def numpy_step(ref: NDArray, cur: NDArray, params: NDArray, grid: tuple[int, int
         z = G[2, 0] * (u + du) + G[2, 1] * (v + dv) + G[2, 2]
         zs = np.where(z > 1e-8, z, 1.0)
         val, ok = bilinear(cur, x / zs, y / zs)
-        return val, ok & (z > 1e-8)
+        return val, ok & (z > 1e-8) & (val < SATURATED)  # a clipped sample is invalid, as in the kernel
 
     (c0, k0), (cl, kl), (cr, kr), (cu, ku), (cd, kd) = (
         sample(0, 0), sample(-1, 0), sample(1, 0), sample(0, -1), sample(0, 1)

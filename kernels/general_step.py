@@ -51,6 +51,7 @@ from kernels.planar_step import (
     INLIER_C,
     MAX_BANDS,
     N_STATS,
+    SATURATED,
     column_tents,
     finish_sums,
     hist_bin,
@@ -227,14 +228,14 @@ def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.
     the row's column gains and the column tents, `planar_step.row_gains` / `column_tents`).
 
     `ok` is false where a reference tap is masked, `Z ≤ 1e-8` or the 4×4 taps leave `cur` or the sample leaves
-    `domain` (`cubic_sample`); the image values and
+    `domain` (`cubic_sample`) or lies on the 8-bit ceiling (`planar_step.SATURATED`); the image values and
     gradients are then 0 (finite, so that a weight of 0 cancels them). Loads and selects only: vectorisable."""
     ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
     xp = _powers((u - bcx) / bs, degree)
     rho, rho_x, rho_y = parallax_at(rho_coeffs, xp, yp, degree)
     x, y, iz, ok_z = warp_point(G, e, u, v, rho)
     c0, cgx, cgy, inside = cubic_sample(cur, x, y, spline, domain)
-    ok = ref_ok & ok_z & (inside == 1)
+    ok = ref_ok & ok_z & (inside == 1) & (c0 < SATURATED)
     gain, b = column_tents(span, h, ti.cast(u, ti.f32), grid_cols)
     r = gain * c0 + beta - ir
     return (ok, ti.select(ok, r, 0.0), ti.select(ok, c0, 0.0), ti.select(ok, cgx, 0.0), ti.select(ok, cgy, 0.0), x, y,

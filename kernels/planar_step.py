@@ -54,6 +54,9 @@ HIST_SUB_BITS = 4
 HIST_SUB = 1 << HIST_SUB_BITS
 HIST_BINS = 20 * HIST_SUB
 OUTSIDE = MASKED  # warped-current value where the warp leaves the current image
+# A warped-current sample at least this high lies on the 8-bit ceiling (all its taps at 255, in grey levels or in
+# irradiance 255 (I/255)^γ alike): the sensor clipped it, eq. (4) does not hold there, and it counts as invalid.
+SATURATED = 254.5
 HUBER_K = 1.345
 TUKEY_C = 4.685
 INLIER_C = TUKEY_C  # |r| ≤ 4.685 σ counts as an inlier whatever the loss
@@ -307,12 +310,13 @@ TILE_STRIDE = TILE + 2
 def warp_row(cur: ti.template(), G: ti.template(), buf: ti.template(), slot: ti.i32, v: ti.i32, ut0: ti.i32,
              n: ti.i32):
     """Warp `n` pixels of reference row `v` from column `ut0 − 1` into slot `slot` of the rolling buffer `buf`:
-    `I(w(G, p*))`, or `OUTSIDE` where the warp leaves `cur`. Stores go to a thread-local array only, so LLVM keeps
-    the ndarray pointers in registers and vectorises the loop (gathers for the bilinear taps)."""
+    `I(w(G, p*))`, or `OUTSIDE` where the warp leaves `cur` or the sample is clipped (`SATURATED`). Stores go to a
+    thread-local array only, so LLVM keeps the ndarray pointers in registers and vectorises the loop (gathers for
+    the bilinear taps)."""
     for j in range(n):
         x, y, z = homography_apply(G, ti.cast(ut0 - 1 + j, ti.f32), ti.cast(v, ti.f32))
         val, ok = projected_sample(cur, x, y, z)
-        buf[slot * TILE_STRIDE + j] = ti.select(ok == 1, val, OUTSIDE)
+        buf[slot * TILE_STRIDE + j] = ti.select((ok == 1) & (val < SATURATED), val, OUTSIDE)
 
 
 @ti.func
