@@ -180,7 +180,8 @@ def run_arm_one(target: str, law: str, start: str, condition_name: str, settings
     config, arm_target = arm_scene(condition_name, start, scene_path, (w, h))
     assert config.start is not None
     told = told_intrinsics(arm_target.camera, condition.told)
-    service = service_config(arm_target, told, {"control": {"law": LAW_NAMES[law]}, **settings.overrides})
+    control = {**settings.overrides.get("control", {}), "law": LAW_NAMES[law]}  # overrides' other control fields kept
+    service = service_config(arm_target, told, {**settings.overrides, "control": control})
     sim = ArmSim(config)
     sim.place_camera(config.start.T_target_ref, config.start.target)
     T_world_ref = sim.camera_pose()
