@@ -9,11 +9,12 @@ SERVOING again (the error guard holds a view that jumped for `rebase_frames` fra
 
 Per mode: the step time of the frames up to the re-acquisition (median, max); how many were answered while the
 worker searched with no registration of their own and the longest of those; the step times of the frames that ran a
-tracker registration (the first LOST frame's failed one, the attempt from the last good estimate, the adopting one:
-a registration's cost, whoever searches); the time from the first LOST frame to SERVOING, the searches the worker
-ran, the longest a `step` waited for the Taichi gate (`kernels.exclusive.GATE`) while the worker held it, the
-longest the worker held the gate between two of its checkpoints (`HoldTimer`: the longest a frame's `hold` can
-wait) and the median time of its searches; and what the gate costs when uncontended (one `hold` per step, one
+tracker registration (the first LOST frame's failed one and the adopting one; inline also the attempt from the last
+good estimate, which in background mode the worker makes: a registration's cost, whoever makes it); the time from
+the first LOST frame to SERVOING, the searches the worker ran, the longest a `step` waited for the Taichi gate
+(`kernels.exclusive.GATE`) while the worker held it, the longest the worker held the gate between two of its
+checkpoints (`HoldTimer`: the longest a frame's `hold` can wait) and the median time of its searches (with its
+attempt from the last good estimate); and what the gate costs when uncontended (one `hold` per step, one
 `checkpoint` per prepared kernel launch). Inline mode (`background_reacquisition=False`) is the baseline: every LOST
 frame runs the whole initialiser. Load: this process alone (one loop thread and, in background mode, one worker)
 after the service's warm-up (`service.startup`: every kernel compiled); the load average is printed with the
@@ -163,7 +164,7 @@ def measure(scene: PlanarScene, roi: tuple[int, int, int, int], background: bool
     searching_ms: list[float] = []  # the frames up to the one that adopted the initialiser's pose
     held_ms: list[float] = []  # LOST frames after it: the error guard holds a view that jumped
     while_searching_ms: list[float] = []  # those answered while the worker searched, with no registration of their own
-    registrations_ms: list[float] = []  # those that ran a tracker registration (failed, from the last good, adoption)
+    registrations_ms: list[float] = []  # those that ran a tracker registration (failed, adoption; inline: last good)
     t_first = time.perf_counter()
     tick = t_first
     state, adopted = ServoState.SERVOING, False
@@ -185,7 +186,7 @@ def measure(scene: PlanarScene, roi: tuple[int, int, int, int], background: bool
                 registrations_ms.append(dt_ms)
             elif getattr(worker, "busy", False):
                 while_searching_ms.append(dt_ms)
-            adopted = step.message.startswith("global initialisation: ok")
+            adopted = step.message.startswith(("global initialisation: ok", "re-acquired by tracking"))
     recovered_s = time.perf_counter() - t_first
     servo.close()
     if timer is not None:

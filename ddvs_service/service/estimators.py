@@ -7,6 +7,8 @@ once: its tracker and its re-acquisition (`registration.reacquisition`, honourin
 on a worker thread (`service.reacquirer`) on engines of its own (workspaces over the same prepared reference), so a
 frame that needs it costs the loop no more than a tracked one: it is answered untracked while the worker searches,
 and the worker's pose is adopted on a later frame only if the tracker, started from it, registers that newest frame.
+The worker's search also makes the attempt from the last good estimate first (a failing one costs a whole
+registration budget), so the loop's only registration of a LOST spell is the failing one that discovers the loss.
 Without `background` the search runs within `estimate` (lockstep experiments: the plant waits for it). The general
 estimator's parallax `ρ*` lives in the reference frame: `rho_coeffs` can be persisted and handed back after a restart.
 """
@@ -27,7 +29,7 @@ from ddvs_service.registration.residual import residual_image
 from ddvs_service.registration.result import RegistrationResult
 from ddvs_service.registration.tracker import Tracker
 from ddvs_service.service.config import RegistrationSettings
-from ddvs_service.service.reacquirer import BackgroundReacquisition
+from ddvs_service.service.reacquirer import LAST_GOOD, BackgroundReacquisition, Retry
 
 Roi = tuple[int, int, int, int]
 F64 = NDArray[np.float64]
@@ -54,8 +56,9 @@ class PlanarEstimator:
 
     A frame that needs re-acquisition (any after an untracked one) is first tracked from the last good estimate
     (the servo held the camera still since: the cheapest re-acquisition, and the only one that survives a large
-    occluder, under which the global search's photometric cost exceeds its threshold) — unless a background search
-    is running, whose thread it would slow down and be slowed down by; when that fails, from the global
+    occluder, under which the global search's photometric cost exceeds its threshold) — with `background` on the
+    worker, by a tracker of its own started from this one's state (the worker then answers OK with `LAST_GOOD` and
+    this tracker registers the newest frame from its unchanged state); when that fails, from the global
     initialiser's estimate, and when there is none (yet) the frame is untracked — never tracked on from
     an estimate the initialiser has not confirmed. The first frame after a reference has no last good estimate. A
     re-acquired frame passes the tracker's own checks (convergence, inliers, `registration.integrity`) like any
@@ -67,7 +70,7 @@ class PlanarEstimator:
         engine = PlanarRegistration.prepare(reference, roi, config=settings.engine_config())
         self._tracker = Tracker(engine)
         searcher = PlanarRegistration(engine.prepared, engine.config) if background else engine
-        self._acquire = _reacquisition(searcher, None, settings, background)
+        self._acquire = _reacquisition(searcher, None, settings, background, self._retry(Tracker(searcher)))
         self._needs_init = True
         self._last_good: F64 | None = None  # where a re-acquisition tracks from first (None: nowhere yet)
         self._before: F64 | None = None  # the estimate before the last tracked frame (reverted to by `lose`)
@@ -119,21 +122,24 @@ class PlanarEstimator:
         message, result = "", None
         G_before = self._tracker.G
         if self._needs_init and self._acquire.enabled:
-            if self._last_good is not None and not self._acquire.busy:  # a search competes for the GIL and CPU
+            beside = isinstance(self._acquire, BackgroundReacquisition)  # the worker tries the last good itself
+            if self._last_good is not None and not beside:
                 result = self._tracker.track(grey)
                 if self._accepted(result):
-                    self._acquire.cancel()
                     message = "re-acquired by tracking from the last good estimate"
             if not (result is not None and self._accepted(result)):
-                init = self._acquire(grey, self._tracker.G)
+                init = self._search(grey)
                 if init.G is None:  # never track on from an unconfirmed estimate
                     local = "" if result is None else f"tracking from the last good estimate: {result.reason}; "
                     return Estimate(False, self._tracker.G, np.zeros(3), 0.0, 0, 0.0, 0.0,
                                     f"{local}global initialisation: LOST ({init.reason})")
-                self._tracker.reset(init.G)
-                self._acquired = True
-                message = "global initialisation: ok" + (" (contradicted the tracking estimate)" if init.contradicts
-                                                         else "")
+                if init.reason == LAST_GOOD:  # the worker registered a frame from this tracker's state: track on
+                    message = "re-acquired by tracking from the last good estimate"
+                else:
+                    self._tracker.reset(init.G)
+                    self._acquired = True
+                    message = "global initialisation: ok" + (" (contradicted the tracking estimate)"
+                                                             if init.contradicts else "")
                 result = None
         if result is None:
             result = self._tracker.track(grey)
@@ -145,6 +151,22 @@ class PlanarEstimator:
             message = f"{message}; registration: {result.reason}".strip("; ")
         return Estimate(tracked, result.G, np.zeros(3), 0.0, int(sum(result.iterations)),
                         _finite(result.residual_rms), _finite(result.inlier_ratio), message)
+
+    def _search(self, grey: NDArray[np.float32]) -> Acquisition:
+        """The re-acquisition of `grey`; on the worker, from the tracker's state first when there is a last good
+        estimate (its state is that estimate: an untracked frame leaves it unchanged)."""
+        G = self._tracker.G
+        if isinstance(self._acquire, BackgroundReacquisition):
+            return self._acquire(grey, G, None if self._last_good is None else G)
+        return self._acquire(grey, G)
+
+    def _retry(self, trial: Tracker) -> Retry:
+        """The attempt from the last good estimate on the worker: `trial` (on the worker's engine) restarted there
+        registers the frame and passes this estimator's checks."""
+        def retry(current: NDArray[np.float32], start: F64) -> bool:
+            trial.reset(start)
+            return self._accepted(trial.track(current))
+        return retry
 
     def _accepted(self, result: RegistrationResult) -> bool:
         return result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
@@ -160,7 +182,7 @@ class GeneralEstimator:
         self.settings = settings
         engine = GeneralRegistration.prepare(reference, roi, config=settings.general_config())
         searcher = GeneralRegistration(engine.prepared, engine.config) if background else engine
-        self._search = _reacquisition(searcher.planar, searcher, settings, background)
+        self._search = _reacquisition(searcher.planar, searcher, settings, background, self._retry(searcher))
         self._acquire = LastGoodFirst(self._search)
         self._tracker = GeneralTracker(engine, self._acquire, rho=rho_coeffs or None)
         self._G: F64 = np.eye(3)
@@ -193,6 +215,17 @@ class GeneralEstimator:
         """End the background re-acquisition, if any (a new reference replaces this estimator)."""
         self._search.close()
 
+    def _retry(self, searcher: GeneralRegistration) -> Retry:
+        """The attempt from the last good estimate on the worker, as the tracker makes it after LOST: `G` from
+        there, `e` from 0, ρ* the tracker's (none known yet: no attempt)."""
+        def retry(current: NDArray[np.float32], start: F64) -> bool:
+            rho = self._tracker.rho_coeffs
+            if rho is None:
+                return False
+            result = searcher.track(current, start, np.zeros(3), rho)
+            return result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
+        return retry
+
     def residual(self, grey: NDArray[np.float32]) -> None:
         """Not available for the general model yet (its warp has the parallax term of eq. (2), not `G` alone)."""
         return None
@@ -220,8 +253,9 @@ class GeneralEstimator:
 class LastGoodFirst(Reacquisition):
     """The general tracker's re-acquisition: `last_good` (the estimator's last tracked `G`) handed over as the start
     on the first call of a LOST spell (the tracker then registers the frame from it), `search` (the global
-    initialiser, maybe in the background) on the next one, and so on alternately while the search is idle; while
-    a background search runs, its answer. `offered`: the last call handed over `last_good`."""
+    initialiser) on the next one, and so on alternately. A background `search` makes the attempt from `last_good`
+    itself, on the worker, before its global search, and answers `LAST_GOOD` when it registered the frame: then
+    `last_good` is handed over. `offered`: the last call handed over `last_good`."""
 
     def __init__(self, search: Reacquisition) -> None:
         super().__init__(search.engine)  # no initialiser of its own: `search` has it
@@ -238,9 +272,13 @@ class LastGoodFirst(Reacquisition):
         return self.search_with.busy
 
     def __call__(self, current: NDArray[np.float32], tracking_G: F64 | None = None) -> Acquisition:
-        if self.last_good is not None and not self.offered and not self.search_with.busy:
+        if isinstance(self.search_with, BackgroundReacquisition):
+            found = self.search_with(current, tracking_G, self.last_good)
+            self.offered = found.reason == LAST_GOOD
+            return found
+        if self.last_good is not None and not self.offered:
             self.offered = True
-            return Acquisition("OK", self.last_good, "the last good estimate")
+            return Acquisition("OK", self.last_good, LAST_GOOD)
         self.offered = False
         return self.search_with(current, tracking_G)
 
@@ -252,11 +290,12 @@ class LastGoodFirst(Reacquisition):
 
 
 def _reacquisition(engine: PlanarRegistration, general: GeneralRegistration | None,
-                   settings: RegistrationSettings, background: bool) -> Reacquisition:
+                   settings: RegistrationSettings, background: bool, retry: Retry) -> Reacquisition:
     """The service's re-acquisition on `engine` (and `general`): off unless `global_init`, from `feature_source`;
-    on a worker thread with `background` (the engines must then be the worker's own)."""
+    on a worker thread with `background` (the engines must then be the worker's own), which tries `retry` first."""
     config = GlobalInitConfig(feature_source=settings.feature_source) if settings.global_init else None
-    return (BackgroundReacquisition if background else Reacquisition)(engine, general, config)
+    return BackgroundReacquisition(engine, general, config, retry) if background else Reacquisition(
+        engine, general, config)
 
 
 def _finite(x: float) -> float:

@@ -7,6 +7,11 @@ A LOST frame must cost the loop at most a frame period, and the global initialis
   frame from it before acting on it), or a LOST one (its reason is reported, and the newest frame is searched next);
 - otherwise the call answers LOST ("searching in the background") and leaves `current` as the frame to search next,
   replacing any frame left before (the worker always takes the newest frame when it becomes free, never a queue).
+A call may also hand over `start`, the caller's last good estimate: the worker's search then first tries `retry`
+(the caller's tracking from it, on the worker's engine), and when that registers the frame answers OK with `start`
+itself and the reason `LAST_GOOD` (the caller tracks on from its own state: the cheapest re-acquisition, and the only
+one that survives a large occluder), else runs the global initialiser. A failing attempt from the last good
+estimate costs a full registration budget: on the worker, never on the loop.
 
 The worker thread starts on the first call and holds the Taichi gate (`kernels.exclusive.GATE`) in the background
 while it searches, so the loop's registrations (and other servos' in the same process) go first at each of its
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,16 +40,22 @@ log = logging.getLogger("ddvs.reacquisition")
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 SEARCHING = "searching in the background"
+LAST_GOOD = "the last good estimate"  # the reason of an OK answer from `retry`: the caller tracks on from its state
+Retry = Callable[[NDArray[np.float32], NDArray[np.float64]], bool]  # (frame, start) -> registered from `start`
 
 
 class BackgroundReacquisition(Reacquisition):
-    """`Reacquisition` on a worker thread (module docstring); `searches` counts the searches finished."""
+    """`Reacquisition` on a worker thread (module docstring); `searches` counts the searches finished, `adopted` the
+    initialiser's OK results handed over (not `LAST_GOOD` answers). `retry`: the caller's attempt from its last good
+    estimate, run on the worker (it must use the worker's engines only)."""
 
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
-                 config: GlobalInitConfig | None = None) -> None:
+                 config: GlobalInitConfig | None = None, retry: Retry | None = None) -> None:
         super().__init__(engine, general, config)
+        self._retry = retry
         self._cond = threading.Condition()
-        self._frame: tuple[F32, F64 | None] | None = None  # the newest frame left to search, and the tracker's G
+        # the newest frame left to search, the tracker's G and where `retry` starts (None: no attempt)
+        self._frame: tuple[F32, F64 | None, F64 | None] | None = None
         self._result: Acquisition | None = None
         self._busy = False
         self._closed = False
@@ -59,9 +71,9 @@ class BackgroundReacquisition(Reacquisition):
         with self._cond:
             return self._searching() or (self._result is not None and self._result.status == "OK")
 
-    def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
-        """A finished search's result, or LOST while searching; `current` is searched next unless an OK result is
-        handed over (module docstring)."""
+    def __call__(self, current: F32, tracking_G: F64 | None = None, start: F64 | None = None) -> Acquisition:
+        """A finished search's result, or LOST while searching; `current` is searched next (from `start` first, when
+        given) unless an OK result is handed over (module docstring)."""
         if not self.enabled:
             return self.search(current, tracking_G)
         with self._cond:
@@ -70,10 +82,9 @@ class BackgroundReacquisition(Reacquisition):
             result, self._result = self._result, None
             if result is not None and result.status == "OK":
                 self._frame = None  # the caller tracks from it: no search unless it asks again
-                self.adopted += 1
+                self.adopted += result.reason != LAST_GOOD  # the initialiser's poses only
                 return result
-            self._frame = (np.array(current, dtype=np.float32, copy=True),
-                           None if tracking_G is None else np.array(tracking_G, dtype=np.float64))
+            self._frame = (np.array(current, dtype=np.float32, copy=True), _copy(tracking_G), _copy(start))
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="ddvs-reacquisition", daemon=True)
                 self._thread.start()
@@ -106,6 +117,13 @@ class BackgroundReacquisition(Reacquisition):
         with self._cond:
             return self._cond.wait_for(lambda: not self._searching(), timeout_s)
 
+    def search(self, current: F32, tracking_G: F64 | None = None, start: F64 | None = None) -> Acquisition:
+        """The worker's search, on the calling thread: `retry` from `start` first (when both are given), then the
+        global initialiser (`Reacquisition.search`)."""
+        if start is not None and self._retry is not None and self._retry(current, start):
+            return Acquisition("OK", start, LAST_GOOD)
+        return super().search(current, tracking_G)
+
     def _searching(self) -> bool:
         """A search runs, or one will start on the frame left (none starts while a result waits to be handed over;
         the condition's lock held)."""
@@ -119,11 +137,11 @@ class BackgroundReacquisition(Reacquisition):
                 if self._closed:
                     return
                 assert self._frame is not None
-                (current, tracking_G), self._frame = self._frame, None
+                (current, tracking_G, start), self._frame = self._frame, None
                 generation, self._busy = self._generation, True
             try:
                 with GATE.background():
-                    result = self.search(current, tracking_G)
+                    result = self.search(current, tracking_G, start)
             except Exception as exc:  # a failed search is a LOST answer, never the end of the worker
                 log.exception("re-acquisition failed")
                 result = Acquisition("LOST", None, f"re-acquisition error: {type(exc).__name__}: {exc}")
@@ -133,3 +151,7 @@ class BackgroundReacquisition(Reacquisition):
                 if generation == self._generation:
                     self._result = result
                 self._cond.notify_all()
+
+
+def _copy(G: F64 | None) -> F64 | None:
+    return None if G is None else np.array(G, dtype=np.float64)
