@@ -57,7 +57,7 @@ class PlanarEstimator:
     A frame that needs re-acquisition (any after an untracked one) is first tracked from the last good estimate
     (the servo held the camera still since: the cheapest re-acquisition, and the only one that survives a large
     occluder, under which the global search's photometric cost exceeds its threshold) — with `background` on the
-    worker, by a tracker of its own started from this one's state (the worker then answers OK with `LAST_GOOD` and
+    worker, by a tracker of its own started from this one's `G` (the worker then answers OK with `LAST_GOOD` and
     this tracker registers the newest frame from its unchanged state); when that fails, from the global
     initialiser's estimate, and when there is none (yet) the frame is untracked — never tracked on from
     an estimate the initialiser has not confirmed. The first frame after a reference has no last good estimate. A
