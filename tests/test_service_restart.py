@@ -8,11 +8,20 @@ import json
 from pathlib import Path
 
 from conftest import free_port
-from test_service_node import F, H, W, past_lost, running_service, scene, service_config, shifted
+from test_service_node import F, H, Operator, W, past_lost, running_service, scene, service_config, shifted
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.protocol import encode_camera_info
 from ddvs_service.protocol.ros import CameraInfo, Header, Time
+
+
+def publish_camera_info(op: Operator) -> None:
+    """One camera info of the test camera (no intrinsics are configured in these tests)."""
+    info = CameraInfo.from_intrinsics(Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H),
+                                      Header(Time.from_ns(1), "camera"))
+    publisher = op.session.declare_publisher(op.keys.key("camera_info"))
+    publisher.put(encode_camera_info(info))
+    publisher.undeclare()
 
 
 def test_restart_resumes_without_camera_info(tmp_path: Path) -> None:
@@ -20,13 +29,9 @@ def test_restart_resumes_without_camera_info(tmp_path: Path) -> None:
     at once, and the next frames are servoed although no camera info was published since."""
     port = free_port()
     config = service_config(port, tmp_path / "state").model_copy(update={"intrinsics": None})
-    info = CameraInfo.from_intrinsics(Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H),
-                                      Header(Time.from_ns(1), "camera"))
     img = scene()
     with running_service(config, tmp_path, port) as (_, op):
-        publisher = op.session.declare_publisher(op.keys.key("camera_info"))
-        publisher.put(encode_camera_info(info))
-        publisher.undeclare()
+        publish_camera_info(op)
         assert op.command(op="set_reference", source="next_frame").ok
         assert op.send(img)["state"] == "READY"
         assert op.command(op="start").ok
@@ -43,15 +48,11 @@ def test_a_reference_frame_that_comes_before_its_camera_info_waits_for_it(tmp_pa
     arrives before any camera info stays pending, and the first frame after the info becomes the reference."""
     port = free_port()
     config = service_config(port, tmp_path / "state").model_copy(update={"intrinsics": None})
-    info = CameraInfo.from_intrinsics(Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H),
-                                      Header(Time.from_ns(1), "camera"))
     img = scene()
     with running_service(config, tmp_path, port) as (_, op):
         assert op.command(op="set_reference", source="next_frame").ok
         assert op.send(img)["state"] == "IDLE"  # answered, no intrinsics yet: still waiting
-        publisher = op.session.declare_publisher(op.keys.key("camera_info"))
-        publisher.put(encode_camera_info(info))
-        publisher.undeclare()
+        publish_camera_info(op)
         assert op.send(img)["state"] == "READY"
         assert op.command(op="start").ok
 
