@@ -125,9 +125,9 @@ class PlanarEstimator:
             beside = isinstance(self._acquire, BackgroundReacquisition)  # the worker tries the last good itself
             if self._last_good is not None and not beside:
                 result = self._tracker.track(grey)
-                if self._accepted(result):
+                if _accepted(result, self.settings):
                     message = "re-acquired by tracking from the last good estimate"
-            if not (result is not None and self._accepted(result)):
+            if not (result is not None and _accepted(result, self.settings)):
                 init = self._search(grey)
                 if init.G is None:  # never track on from an unconfirmed estimate
                     local = "" if result is None else f"tracking from the last good estimate: {result.reason}; "
@@ -143,7 +143,7 @@ class PlanarEstimator:
                 result = None
         if result is None:
             result = self._tracker.track(grey)
-        tracked = self._accepted(result)
+        tracked = _accepted(result, self.settings)
         self._needs_init = not tracked
         if tracked:
             self._before, self._last_good = G_before, result.G
@@ -165,11 +165,8 @@ class PlanarEstimator:
         registers the frame and passes this estimator's checks."""
         def retry(current: NDArray[np.float32], start: F64) -> bool:
             trial.reset(start)
-            return self._accepted(trial.track(current))
+            return _accepted(trial.track(current), self.settings)
         return retry
-
-    def _accepted(self, result: RegistrationResult) -> bool:
-        return result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
 
 
 class GeneralEstimator:
@@ -222,8 +219,7 @@ class GeneralEstimator:
             rho = self._tracker.rho_coeffs
             if rho is None:
                 return False
-            result = searcher.track(current, start, np.zeros(3), rho)
-            return result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
+            return _accepted(searcher.track(current, start, np.zeros(3), rho), self.settings)
         return retry
 
     def residual(self, grey: NDArray[np.float32]) -> None:
@@ -233,7 +229,7 @@ class GeneralEstimator:
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
         adopted = self._search.adopted
         result = self._tracker.track(grey)
-        tracked = result.converged and result.inlier_ratio >= self.settings.min_inlier_ratio
+        tracked = _accepted(result, self.settings)
         message = "" if tracked else f"registration: {result.reason} {result.flags}"
         if tracked:
             self._G = result.G
@@ -296,6 +292,11 @@ def _reacquisition(engine: PlanarRegistration, general: GeneralRegistration | No
     config = GlobalInitConfig(feature_source=settings.feature_source) if settings.global_init else None
     return BackgroundReacquisition(engine, general, config, retry) if background else Reacquisition(
         engine, general, config)
+
+
+def _accepted(result: RegistrationResult, settings: RegistrationSettings) -> bool:
+    """A registration the service acts on: converged, with at least `min_inlier_ratio` of the ROI's pixels inliers."""
+    return result.converged and result.inlier_ratio >= settings.min_inlier_ratio
 
 
 def _finite(x: float) -> float:
