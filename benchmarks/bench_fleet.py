@@ -2,9 +2,11 @@
 
 Each robot has a plant of its own in a separate process (this script with `--publish`): a camera in front of a
 textured plane (`sim.planar_scene.PlanarScene`, the shipped "boat" poster 0.7 m ahead, 320×240, f = 420 px) whose
-pose integrates the servo's twists (`T_ref_cur ← T_ref_cur · exp(ξ dt)`, the twist last received, dt = 1/30 s),
+pose integrates the servo's twists (`T_ref_cur ← T_ref_cur · exp(ξ dt)`, the twist last received, dt = 1/30 s per
+period),
 rendered by `cv2.warpPerspective` and published at 30 Hz in real time (an absolute schedule; each frame stamped with
-the wall clock before it is encoded and put). It uploads the goal image as the reference, starts the servo from a
+the wall clock before it is encoded and put; a plant the host ran too late for a frame skips it, as a camera drops
+frames, and the row counts them: `skipped`). It uploads the goal image as the reference, starts the servo from a
 random pose (±20 mm, ±1.7° per axis, seeded per robot) and closes the loop, so every frame is a new view the
 registration must track. Latency = twist arrival (the plant's wall clock) − its frame's stamp; a frame is
 answered when its twist arrived (a twist withheld as stale, or a frame dropped because a newer one came, is not).
@@ -15,10 +17,13 @@ starts; over that window the parent reads each service process's CPU time (`/pro
 as % of one core) and, at its end, its resident memory (VmRSS). The load average is printed with every row, and
 how many robots publish within 5 ms of one another (`crowd`: each plant keeps its own 30 Hz schedule, so the phases
 its start gave it hold for the whole run, and the frames that meet there wait for each other once every period).
+`--trace`: the plants also read their robots' status and the row says what became of each frame not answered
+(`missed`, `missed_kinds`: superseded in the inbox, twist withheld as stale, lost before the service, twist lost)
+and where the answered frames' time went (`parts_ms_mean`: outside the service, queued in its inbox, its work).
 
     .venv/bin/python benchmarks/bench_fleet.py [--robots 1 2 4 8 16] [--modes shared separate] [--seconds 30]
-                                               [--service-shm on|off] [--realtime-priority P] [--markdown]
-                                               [--json OUT]
+                                               [--service-shm on|off] [--realtime-priority P] [--trace]
+                                               [--markdown] [--json OUT]
 """
 
 from __future__ import annotations
@@ -66,6 +71,7 @@ W, H, F = 320, 240, 420.0
 CAMERA = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
 RATE_HZ = 30.0
 WARM_UP_FRAMES = 30
+SLOW_MS = 10.0  # `trace`: answered frames slower than this are decomposed
 CROWD_WINDOW_MS = 5.0  # `crowd`: about two frames' service on the loop thread
 READY_LIMIT_S = 600.0  # 16 separate services start one Taichi each on 2 shared cores
 
@@ -93,14 +99,16 @@ def start_pose(seed: int) -> np.ndarray:
     return pose
 
 
-def publish(robot: str, port: int, seed: int) -> None:
+def publish(robot: str, port: int, seed: int, trace: bool) -> None:
     """Plant process of `robot`: uploads the reference, starts the servo, closes the loop at 30 Hz; prints `ready`
-    after the warm-up, reads `T0 SECONDS` (wall clock, s) from stdin, prints its figures as JSON after the window."""
+    after the warm-up, reads `T0 SECONDS` (wall clock, s) from stdin, prints its figures as JSON after the window.
+    `trace`: also subscribe to the robot's status and say what became of each frame not answered (`trace`)."""
     scene = plant_scene()
     keys = Keys("ddvs", robot)
     session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
     lock = threading.Lock()
     arrivals: dict[int, int] = {}  # frame stamp (ns) -> twist arrival (ns)
+    statuses: dict[int, dict[str, Any]] = {}  # frame stamp (ns) -> what the service's status said of it
     twist = np.zeros(6)
 
     def on_twist(sample: Any) -> None:
@@ -111,8 +119,15 @@ def publish(robot: str, port: int, seed: int) -> None:
             arrivals[msg.header.stamp.to_ns()] = arrival
             twist = msg.vector
 
+    def on_status(sample: Any) -> None:
+        status = json.loads(sample.payload.to_bytes())
+        with lock:
+            statuses[status["frame_stamp_ns"]] = {"message": status["message"], "counters": status["counters"],
+                                                  "latency_ms": status["latency_ms"]}
+
     pub = declare_publisher(session, keys, "camera_image")
     sub = session.declare_subscriber(keys.key("servo_twist"), on_twist)
+    status_sub = session.declare_subscriber(keys.key("servo_status"), on_status) if trace else None
     try:
         deadline = time.monotonic() + READY_LIMIT_S
         while True:
@@ -135,11 +150,12 @@ def publish(robot: str, port: int, seed: int) -> None:
         threading.Thread(target=lambda: window.extend(map(float, sys.stdin.readline().split())), daemon=True).start()
         stamps: list[int] = []
         ready = False
-        t0, k = time.perf_counter(), 0
+        skipped_stamps: list[int] = []  # when the plant skipped a frame it was too late for (wall clock, ns)
+        t0, k, periods = time.perf_counter(), 0, 1
         while not window or time.time() < window[0] + window[1] + 0.5:
             with lock:
                 applied = twist.copy()
-            pose = pose @ se3_exp(applied / RATE_HZ)
+            pose = pose @ se3_exp(applied * periods / RATE_HZ)
             image = scene.render(scene.homography(pose[:3, :3], pose[:3, 3]))
             frame = np.clip(image, 0, 255).astype(np.uint8)
             stamp = time.time_ns()
@@ -153,22 +169,83 @@ def publish(robot: str, port: int, seed: int) -> None:
                     print("ready", flush=True)
                 elif time.perf_counter() - t0 > READY_LIMIT_S:
                     raise SystemExit(f"{robot}: fewer than {WARM_UP_FRAMES} frames answered in {READY_LIMIT_S} s")
-            k += 1
+            periods = next_slot(t0, k, time.perf_counter()) - k
+            skipped_stamps.extend([time.time_ns()] * (periods - 1))
+            k += periods
             time.sleep(max(0.0, t0 + k / RATE_HZ - time.perf_counter()))
         time.sleep(0.3)  # the last twists
         start_ns, end_ns = int(window[0] * 1e9), int((window[0] + window[1]) * 1e9)
         measured = [s for s in stamps if start_ns <= s < end_ns]
         with lock:
             latencies = [(arrivals[s] - s) / 1e6 for s in measured if s in arrivals]
+            traced = frame_trace(stamps, measured, arrivals, statuses) if trace else {}
         angles = 2.0 * np.pi * RATE_HZ * (np.array(measured, dtype=np.int64) % 10**9) / 1e9
         phase_ms = float(np.angle(np.exp(1j * angles).mean()) % (2.0 * np.pi) / (2.0 * np.pi) * 1e3 / RATE_HZ)
         print(json.dumps({"robot": robot, "published": len(measured), "answered": len(latencies),
+                          "skipped": sum(start_ns <= s < end_ns for s in skipped_stamps),
                           "latency_ms": latencies, "final_offset_mm": float(np.linalg.norm(pose[:3, 3]) * 1e3),
-                          "phase_ms": phase_ms}), flush=True)
+                          "phase_ms": phase_ms, **traced}), flush=True)
     finally:
+        if status_sub is not None:
+            status_sub.undeclare()
         sub.undeclare()
         pub.undeclare()
         session.close()
+
+
+def next_slot(t0: float, k: int, now: float) -> int:
+    """The plant's next frame after frame `k` on its 30 Hz grid from `t0` (`time.perf_counter()` s): `k + 1`, unless
+    the plant is so late (the host did not run it) that frame `k + 1` would follow frame `k` by less than half a
+    period: such frames are skipped, as a camera drops the frames its driver was late for, instead of catching up
+    with frames a few ms apart (each of which would supersede the one before it in the service's inbox)."""
+    slot = k + 1
+    while t0 + slot / RATE_HZ < now + 0.5 / RATE_HZ:
+        slot += 1
+    return slot
+
+
+def frame_trace(stamps: list[int], measured: list[int], arrivals: dict[int, int],
+                statuses: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """What became of each measured frame whose twist did not arrive, from the service's own status of every frame
+    it processed (`frame_stamp_ns`, `message`, `counters`): `stale` (processed, twist withheld: its message says
+    so), `twist_lost` (processed, not stale, yet no twist arrived), `superseded` (never processed, and the service's
+    `dropped` counter grew between the processed frames around it: a newer frame replaced it in the inbox), `lost`
+    (never processed and not counted dropped: it did not reach the service's inbox). And `parts_ms`, where the
+    time of every answered frame went (`split_latency`)."""
+    index = {s: k for k, s in enumerate(stamps)}
+    missed = []
+    for s in measured:
+        if s in arrivals:
+            continue
+        k = index[s]
+        before = next((statuses[t] for t in reversed(stamps[:k]) if t in statuses), None)
+        after = next((statuses[t] for t in stamps[k + 1:] if t in statuses), None)
+        if s in statuses:
+            kind = "stale" if statuses[s]["message"].startswith("stale") else "twist_lost"
+        elif before is not None and after is not None and (after["counters"]["dropped"]
+                                                            > before["counters"]["dropped"]):
+            kind = "superseded"
+        else:
+            kind = "lost"
+        neighbours = [round((arrivals[t] - t) / 1e6, 1) if t in arrivals else None
+                      for t in stamps[max(k - 2, 0):k + 3]]
+        following = stamps[k + 1] if k + 1 < len(stamps) else s
+        missed.append({"frame": k, "kind": kind, "t_s": round((s - measured[0]) / 1e9, 3),
+                       "next_frame_after_ms": round((following - s) / 1e6, 1),
+                       "latency_ms_around": neighbours,
+                       "service_total_ms": statuses[s]["latency_ms"]["total"] if s in statuses else None})
+    parts = [split_latency((arrivals[s] - s) / 1e6, statuses[s]["latency_ms"]) for s in measured
+             if s in arrivals and s in statuses]
+    return {"missed": missed, "parts_ms": parts, "statuses": sum(s in statuses for s in measured)}
+
+
+def split_latency(latency_ms: float, service: dict[str, float]) -> list[float]:
+    """A frame's latency in four parts (ms): `outside` (its stamp → the service's callback, and twist out → the
+    plant's callback: transport and the two processes' wake-ups), `queued` (in the service's inbox: behind other
+    robots' frames, and the loop's hand-off), `work` (decode, registration, control, twist out) and the latency."""
+    work = service["decode"] + service["registration"] + service["control"] + service["publish"]
+    return [round(latency_ms - service["total"], 3), round(service["total"] - work, 3), round(work, 3),
+            round(latency_ms, 3)]
 
 
 # --- the measuring parent ---------------------------------------------------------------------------------------
@@ -220,13 +297,14 @@ def start_services(mode: str, robots: list[str], workdir: Path,
     return procs, ports
 
 
-def measure(mode: str, n: int, seconds: float, shm: bool) -> dict[str, Any]:
+def measure(mode: str, n: int, seconds: float, shm: bool, trace: bool) -> dict[str, Any]:
     robots = [f"r{i}" for i in range(n)]
     with tempfile.TemporaryDirectory(prefix="ddvs-fleet-") as tmp:
         services, ports = start_services(mode, robots, Path(tmp), shm)
+        flags = ["--trace"] if trace else []
         plants = [subprocess.Popen([sys.executable, __file__, "--publish", r, "--port", str(ports[r]),
-                                    "--seed", str(i)], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                   text=True) for i, r in enumerate(robots)]
+                                    "--seed", str(i), *flags], cwd=ROOT, stdin=subprocess.PIPE,
+                                   stdout=subprocess.PIPE, text=True) for i, r in enumerate(robots)]
         try:
             t_start = time.monotonic()
             for plant in plants:
@@ -278,6 +356,7 @@ def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], 
     answered = sum(r["answered"] for r in results)
     return {
         "mode": mode, "robots": n, "seconds": seconds, "published": published, "answered": answered,
+        "skipped": sum(r["skipped"] for r in results),
         "answered_fraction": round(answered / max(published, 1), 4),
         "worst_robot_answered_fraction": round(min(p["answered"] / max(p["published"], 1) for p in per_robot), 4),
         "median_ms": round(float(np.median(pooled)), 2), "p99_ms": round(float(np.percentile(pooled, 99)), 2),
@@ -286,8 +365,30 @@ def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], 
         "cpu_percent": round(100.0 * (sum(cpu1) - sum(cpu0)) / seconds, 1),
         "load_average": [round(load0[0], 2), round(load1[0], 2)], "ready_s": round(ready_s, 1),
         "crowd_5ms": crowd(phases, CROWD_WINDOW_MS), "phases_ms": sorted(round(p, 1) for p in phases),
-        "per_robot": per_robot,
+        "per_robot": per_robot, **traced_summary(results),
     }
+
+
+def traced_summary(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The plants' traces (`--trace`) pooled: every frame not answered with its robot, the count of each kind (and of
+    the superseded, those replaced by a frame its plant published less than half a period later), and the mean parts
+    of the latency (`split_latency`) of every answered frame and of those slower than `SLOW_MS`."""
+    if not all("missed" in r for r in results):
+        return {}
+    missed = [{"robot": r["robot"], **m} for r in results for m in r["missed"]]
+    parts = np.array([p for r in results for p in r["parts_ms"]] or [[np.nan] * 4])
+    slow = parts[parts[:, 3] > SLOW_MS]
+
+    def mean_parts(rows: np.ndarray) -> dict[str, float | None]:
+        return {name: round(float(rows[:, i].mean()), 2) if len(rows) else None
+                for i, name in enumerate(("outside", "queued", "work", "latency"))}
+
+    return {"missed": missed, "missed_kinds": {kind: sum(m["kind"] == kind for m in missed)
+                                               for kind in ("superseded", "stale", "lost", "twist_lost")},
+            "superseded_by_a_frame_within_half_a_period": sum(
+                m["kind"] == "superseded" and m["next_frame_after_ms"] < 500.0 / RATE_HZ for m in missed),
+            "parts_ms_mean": mean_parts(parts), "slow": len(slow), "slow_parts_ms_mean": mean_parts(slow),
+            "statuses": sum(r["statuses"] for r in results)}
 
 
 def crowd(phases_ms: list[float], window_ms: float) -> int:
@@ -313,6 +414,10 @@ def main() -> None:
                         help="the whole chain (this process, the services and the plants it starts, which inherit "
                              "it) under SCHED_FIFO at this priority: what the process does when it gets the cores "
                              "of a host busy with other work (root or CAP_SYS_NICE)")
+    parser.add_argument("--trace", action="store_true",
+                        help="the plants also subscribe to their robots' status and report what became of each "
+                             "frame not answered (stale, superseded, lost, twist lost) and where the slow frames' "
+                             "time went (the row's `missed`, `slow`; the status traffic is the run's too)")
     parser.add_argument("--markdown", action="store_true")
     parser.add_argument("--json", type=Path, help="also write every row (per-robot figures included) here")
     parser.add_argument("--publish", metavar="ROBOT", help=argparse.SUPPRESS)  # the plant process
@@ -320,14 +425,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.publish:
-        publish(args.publish, args.port, args.seed)
+        publish(args.publish, args.port, args.seed, args.trace)
         return
     if args.realtime_priority:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.realtime_priority))
     rows = []
     for n in args.robots:
         for mode in args.modes:
-            row = measure(mode, n, args.seconds, args.service_shm == "on")
+            row = measure(mode, n, args.seconds, args.service_shm == "on", args.trace)
             print(json.dumps({k: v for k, v in row.items() if k != "per_robot"}), file=sys.stderr, flush=True)
             rows.append(row)
             if args.json:
