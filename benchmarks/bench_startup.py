@@ -31,6 +31,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,6 +53,7 @@ from ddvs_service.protocol import (  # noqa: E402
 from ddvs_service.protocol.upload import encode_upload  # noqa: E402
 
 KEYS = Keys("ddvs", "boot")
+JUMP_DEG = 25.0  # the view after a jump: the scene turned by this much (degrees)
 
 
 def spawn(config: Path, *args: str) -> subprocess.Popen:
@@ -79,16 +81,73 @@ def warm_up_seconds(log: str) -> float | None:
     return None
 
 
-def prepare(config: Path, port: int) -> None:
-    """A first run: upload the reference and start the servo, so that the state directory resumes SERVOING (this
-    run also fills Taichi's offline cache)."""
+class Camera:
+    """A 30 Hz camera on `session` (stamps = wall clock) whose view moves in a small circle (`frame_at`), on its
+    own thread between `start` and `stop`. The view goes on from where the last `stop` left it: the arm does not move
+    while the service is down (its bridge's watchdog stops it), so a restarted service sees what it last saw."""
+
+    def __init__(self) -> None:
+        self.views = [[frame_at(view, k) for k in range(90)] for view in (scene(), turned(scene(), JUMP_DEG))]
+        self.frames = self.views[0]
+        self.k = 0
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, session) -> None:
+        pub = declare_publisher(session, KEYS, "camera_image")
+        self._done.clear()
+
+        def run() -> None:
+            while not self._done.is_set():
+                stamp = Header(Time.from_ns(time.time_ns()), "camera")
+                pub.put(encode_image(image_from_array(self.frames[self.k % 90], "mono8", stamp)))
+                self.k += 1
+                time.sleep(1 / 30)
+            pub.undeclare()
+
+        self._thread = threading.Thread(target=run)
+        self._thread.start()
+
+    def jump(self) -> None:
+        """Show the other view (the scene turned by `JUMP_DEG` from this one): more than tracking follows."""
+        self.frames = self.views[1] if self.frames is self.views[0] else self.views[0]
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+def turned(image: np.ndarray, degrees: float) -> np.ndarray:
+    A = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), degrees, 1.0)
+    return cv2.warpAffine(image, A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def prepare(config: Path, port: int, camera: Camera) -> None:
+    """A first run: upload the reference, start the servo and serve the camera until it moves, so that the state
+    directory resumes SERVOING from a last good estimate, as a servo stopped while it works does (this run also
+    fills Taichi's offline cache)."""
     service = spawn(config)
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         wait_alive(session, time.monotonic() + 300)
         assert command(session, KEYS, op="set_reference", source="upload",
                        image={"format": "png", "data": encode_upload(scene())}).ok
         assert command(session, KEYS, op="start").ok
-        time.sleep(1.0)
+        moving = threading.Event()
+
+        def on_twist(sample) -> None:
+            twist = decode_twist_stamped(sample.payload.to_bytes())
+            if np.any(twist.linear != 0.0) or np.any(twist.angular != 0.0):
+                moving.set()
+
+        sub = session.declare_subscriber(KEYS.key("servo_twist"), on_twist)
+        camera.start(session)
+        try:
+            assert moving.wait(300), "the prepared servo never moved"
+            time.sleep(0.5)
+        finally:
+            camera.stop()
+            sub.undeclare()
     stop(service)
 
 
@@ -103,8 +162,7 @@ def wait_alive(session, deadline: float) -> float:
             time.sleep(0.02)
 
 
-def restart(config: Path, port: int, warmup: bool) -> dict:
-    frames = [frame_at(scene(), k) for k in range(90)]
+def restart(config: Path, port: int, warmup: bool, camera: Camera) -> dict:
     first_answer: list[float] = []
     first_twist: list[float] = []
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
@@ -120,19 +178,7 @@ def restart(config: Path, port: int, warmup: bool) -> dict:
 
         t_frames = time.time_ns()
         sub = session.declare_subscriber(KEYS.key("servo_twist"), on_twist)
-        pub = declare_publisher(session, KEYS, "camera_image")
-        done = threading.Event()
-
-        def camera() -> None:
-            k = 0
-            while not done.is_set():
-                stamp = Header(Time.from_ns(time.time_ns()), "camera")
-                pub.put(encode_image(image_from_array(frames[k % 90], "mono8", stamp)))
-                k += 1
-                time.sleep(1 / 30)
-
-        thread = threading.Thread(target=camera)
-        thread.start()
+        camera.start(session)
         t0 = time.monotonic()
         service = spawn(config, *(() if warmup else ("--no-warmup",)))
         try:
@@ -143,15 +189,64 @@ def restart(config: Path, port: int, warmup: bool) -> dict:
                 time.sleep(0.005)
             cpu_twist = cpu_seconds(service.pid)
         finally:
-            done.set()
-            thread.join()
-            log = stop(service)
+            log = stop(service)  # the camera runs until the service stopped: what it last saw is where it resumes
+            camera.stop()
             sub.undeclare()
-            pub.undeclare()
     return {"warmup": warmup, "alive_s": round(alive, 3), "first_answer_s": round(first_answer[0] - t0, 3),
             "first_twist_s": round(first_twist[0] - t0, 3),
             "cpu_alive_s": round(cpu_alive, 2), "cpu_first_twist_s": round(cpu_twist, 2),
             "warm_up_s": warm_up_seconds(log), "load_average": round(os.getloadavg()[0], 2)}
+
+
+def jump(config: Path, port: int, camera: Camera) -> dict:
+    """A restart with the warm-up; once the servo moves, the camera jumps to the other view, which only the global
+    initialiser finds: how long the loop's longest pause between two answers was from the jump until the servo
+    moved again (a resumed servo compiles the initialiser's kernels there, holding the GIL), and how long that
+    re-acquisition took."""
+    answers: list[tuple[float, bool]] = []  # arrival, non-zero
+    messages: list[str] = []
+    with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
+
+        def on_twist(sample) -> None:
+            twist = decode_twist_stamped(sample.payload.to_bytes())
+            if twist.header.stamp.to_ns() >= t_frames:
+                answers.append((time.monotonic(), bool(np.any(twist.linear != 0.0) or np.any(twist.angular != 0.0))))
+
+        def on_status(sample) -> None:
+            messages.append(json.loads(sample.payload.to_bytes()).get("message", ""))
+
+        t_frames = time.time_ns()
+        subs = [session.declare_subscriber(KEYS.key("servo_twist"), on_twist),
+                session.declare_subscriber(KEYS.key("servo_status"), on_status)]
+        camera.start(session)
+        service = spawn(config)
+        try:
+            deadline = time.monotonic() + 300
+            while not any(moving for _, moving in answers) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            searches = [search_after_jump(camera, answers, messages, deadline) for _ in range(2)]
+        finally:
+            log = stop(service)
+            camera.stop()
+            for sub in subs:
+                sub.undeclare()
+    return {"searches": searches, "initialiser_warmed_up": '"initialiser": true' in log,
+            "load_average": round(os.getloadavg()[0], 2)}
+
+
+def search_after_jump(camera: Camera, answers: list[tuple[float, bool]], messages: list[str],
+                      deadline: float) -> dict:
+    """Jump the camera to the other view and wait until the servo moves again (its first 0.2 s of answers are
+    still the old view's); the longest pause between answers meanwhile, the time it took, whether the initialiser
+    found the view."""
+    camera.jump()
+    t_jump, n_messages = time.monotonic(), len(messages)
+    while time.monotonic() < deadline and not any(moving for t, moving in answers if t > t_jump + 0.2):
+        time.sleep(0.005)
+    moved = next(t for t, moving in answers if moving and t > t_jump + 0.2)
+    gaps = np.diff([t_jump, *[t for t, _ in answers if t_jump < t <= moved]])
+    return {"longest_pause_s": round(float(gaps.max()), 3), "reacquired_s": round(moved - t_jump, 3),
+            "initialiser": any(m.startswith("global initialisation: ok") for m in messages[n_messages:])}
 
 
 def phases(config: Path, runs: int) -> list[dict]:
@@ -179,6 +274,8 @@ def main() -> None:
     parser.add_argument("--gain-grid", type=int, nargs=2, default=[1, 1], metavar=("ROWS", "COLS"))
     parser.add_argument("--model", choices=["planar", "general"], default="planar")
     parser.add_argument("--phases", type=int, default=0, metavar="N", help="N in-process breakdowns as well")
+    parser.add_argument("--jump", type=int, default=0, metavar="N",
+                        help="N restarts whose camera then jumps to a view only the initialiser finds")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
     port = free_port()
@@ -189,14 +286,15 @@ def main() -> None:
         "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
         "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid, "model": args.model},
     }))
-    prepare(config, port)
+    camera = Camera()
+    prepare(config, port, camera)
     if args.phases:
         load = os.getloadavg()[0]
         print_rows(phases(config, args.phases), args.markdown,
                    ["phase", "wall: median (range)", "CPU: median (range)"],
                    lambda r: [r["phase"], spread(r["wall_s"]), spread(r["cpu_s"])])
         print(f"\n{args.phases} runs, load {load:.2f} before, {os.getloadavg()[0]:.2f} after\n")
-    rows = [restart(config, port, warmup) for _ in range(args.runs) for warmup in (True, False)]
+    rows = [restart(config, port, warmup, camera) for _ in range(args.runs) for warmup in (True, False)]
     print_rows(rows, args.markdown,
                ["warm-up", "process start → alive: wall / CPU", "→ first answer", "→ first non-zero twist: wall / CPU",
                 "warm-up itself", "load"],
@@ -204,6 +302,16 @@ def main() -> None:
                           f"{r['first_answer_s']:.2f} s",
                           f"{r['first_twist_s']:.2f} s / {r['cpu_first_twist_s']:.2f} s",
                           f"{r['warm_up_s'] or 0:.2f} s", f"{r['load_average']:.2f}"])
+    if args.jump:
+        print()
+        print_rows([jump(config, port, camera) for _ in range(args.jump)], args.markdown,
+                   ["initialiser warmed up at start", "found by the initialiser: 1st / 2nd jump",
+                    "longest pause between answers: 1st / 2nd", "jump → moving again: 1st / 2nd", "load"],
+                   lambda r: ["yes" if r["initialiser_warmed_up"] else "no",
+                              " / ".join("yes" if s["initialiser"] else "no" for s in r["searches"]),
+                              " / ".join(f"{s['longest_pause_s']:.2f} s" for s in r["searches"]),
+                              " / ".join(f"{s['reacquired_s']:.2f} s" for s in r["searches"]),
+                              f"{r['load_average']:.2f}"])
 
 
 if __name__ == "__main__":

@@ -7,8 +7,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 from conftest import free_port
-from test_service_node import F, H, Operator, W, past_lost, running_service, scene, service_config, shifted
+from test_service_node import F, H, Operator, Service, W, past_lost, running_service, scene, service_config, shifted
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.protocol import encode_camera_info
@@ -80,3 +81,66 @@ def test_restart_applies_the_edited_file_and_keeps_run_time_changes(tmp_path: Pa
     assert active["control"]["gains"] == 0.3
     assert active["frame_timeout_s"] == 0.25 and active["control"]["max_linear"] == 0.1
     assert json.loads((tmp_path / "state" / "config.json").read_text())["frame_timeout_s"] == 0.25
+
+
+def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp_path: Path) -> None:
+    """A planar servo stopped while it tracked persists its last good estimate; restarted, it warms up the tracking
+    kernels only (the initialiser's compile at the first search that needs it) and re-acquires the unchanged view
+    from that estimate, not by the global initialiser."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    img, view = scene(), shifted(scene(), 5.0, 3.0)
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_reference", source="next_frame").ok
+        assert op.send(img)["state"] == "READY"
+        assert op.command(op="start").ok
+        assert past_lost(op, view)[0]["state"] == "SERVOING"
+    G = np.reshape(json.loads((tmp_path / "state" / "state.json").read_text())["last_good_G"], (3, 3))
+    centre = G @ [W / 2, H / 2, 1.0]  # reference → current pixels: the view is the reference shifted by (5, 3)
+    assert np.allclose(centre[:2] / centre[2], [W / 2 + 5.0, H / 2 + 3.0], atol=0.2), G
+    service = Service(config, tmp_path)
+    op = Operator(port)
+    try:
+        service.wait_ready(op)
+        status, _ = past_lost(op, view)
+    finally:
+        code, log = service.stop()
+        op.close()
+    assert code == 0
+    messages = [s["message"] for s in op.statuses]
+    assert status["state"] == "SERVOING", status
+    assert "re-acquired by tracking from the last good estimate" in messages, messages
+    assert not any(m.startswith("global initialisation: ok") for m in messages), messages
+    warmed = [json.loads(line) for line in log.splitlines() if '"kernels warmed up"' in line]
+    assert [w["initialiser"] for w in warmed] == [False], log[-3000:]
+
+
+def test_an_unusable_persisted_estimate_is_dropped_and_the_first_frame_initialised_globally(tmp_path: Path) -> None:
+    """A persisted last good estimate that is no homography is refused with a logged reason; the service resumes
+    its reference and state, warms the initialiser up and re-acquires globally."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    img, view = scene(), shifted(scene(), 5.0, 3.0)
+    with running_service(config, tmp_path, port) as (_, op):
+        assert op.command(op="set_reference", source="next_frame").ok
+        assert op.send(img)["state"] == "READY"
+        assert op.command(op="start").ok
+        assert past_lost(op, view)[0]["state"] == "SERVOING"
+    state_file = tmp_path / "state" / "state.json"
+    state = json.loads(state_file.read_text())
+    state_file.write_text(json.dumps({**state, "last_good_G": [1.0, "x", 0.0]}))
+    service = Service(config, tmp_path)
+    op = Operator(port)
+    try:
+        service.wait_ready(op)
+        status, _ = past_lost(op, view)
+    finally:
+        code, log = service.stop()
+        op.close()
+    assert code == 0
+    messages = [s["message"] for s in op.statuses]
+    assert status["state"] == "SERVOING", status
+    assert any(m.startswith("global initialisation: ok") for m in messages), messages
+    assert "persisted last good estimate not usable" in log
+    warmed = [json.loads(line) for line in log.splitlines() if '"kernels warmed up"' in line]
+    assert [w["initialiser"] for w in warmed] == [True], log[-3000:]

@@ -90,6 +90,18 @@ class PlanarEstimator:
         self._needs_init = False
         self._last_good = self._tracker.G
 
+    @property
+    def last_good(self) -> F64 | None:
+        """The last good estimate, where a re-acquisition tracks from first (None: none, or forgotten by `lose`)."""
+        return self._last_good
+
+    def resume(self, G: F64) -> None:
+        """Take `G` as the last good estimate without trusting it (a restart: an earlier process's last estimate):
+        the next frame is re-acquired from it first, as after a LOST frame, then by the initialiser."""
+        self._tracker.reset(G)
+        self._needs_init = True
+        self._last_good = self._tracker.G
+
     def lose(self) -> None:
         """The last tracked frame's fit is suspect (the pipeline's error guard). Tracked on from the tracker's own
         estimate, it is forgotten: the tracker goes back to the estimate before it and the next frame is
@@ -195,6 +207,17 @@ class GeneralEstimator:
 
     def assume(self, G: F64) -> None:
         """The general tracker always re-acquires globally (it also estimates ρ* on that frame)."""
+
+    @property
+    def last_good(self) -> F64 | None:
+        """The last tracked `G` (`PlanarEstimator.last_good`)."""
+        return self._acquire.last_good
+
+    def resume(self, G: F64) -> None:
+        """Take `G` as the last good estimate without trusting it (`PlanarEstimator.resume`): the tracker's first
+        re-acquisition starts from it, with ρ* the persisted `rho_coeffs` (none: the initialiser)."""
+        self._G = np.array(G, dtype=np.float64)
+        self._acquire.last_good = self._G
 
     def lose(self) -> None:
         """The last tracked frame's fit is suspect: re-acquire `G` and `e` by the global initialiser only on the next

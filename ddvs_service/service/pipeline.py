@@ -114,10 +114,12 @@ class ServoPipeline:
 
     # --- reference ----------------------------------------------------------------------------------------------
     def set_reference(self, image: NDArray, roi: Roi | None = None, G0: NDArray | None = None,
-                      rho_coeffs: list[float] | None = None) -> Roi:
+                      rho_coeffs: list[float] | None = None, last_good: NDArray | None = None) -> Roi:
         """Adopt `image` as the reference I*; the first frame after it is globally initialised unless `G0` (e.g.
-        identity when the reference is the current frame) is given. `rho_coeffs`: a known parallax field of this
-        reference (general model; persisted across restarts). Returns the ROI used."""
+        identity when the reference is the current frame) is given, or re-acquired from `last_good` first (an
+        earlier process's last good estimate, persisted across restarts; not trusted: `PlanarEstimator.resume`).
+        `rho_coeffs`: a known parallax field of this reference (general model; persisted across restarts). Returns
+        the ROI used."""
         if self.intrinsics is None:
             raise ValueError("no camera intrinsics yet: configure 'intrinsics' or publish camera info first")
         grey = np.ascontiguousarray(to_grey(image), dtype=np.float32)
@@ -128,6 +130,8 @@ class ServoPipeline:
         estimator = self._build_estimator(grey, roi)
         if G0 is not None:
             estimator.assume(G0)
+        elif last_good is not None:
+            estimator.resume(np.asarray(last_good, dtype=np.float64))
         self.machine.reference_set()
         assert self.roi is not None
         return self.roi
@@ -169,6 +173,11 @@ class ServoPipeline:
     @property
     def G(self) -> NDArray[np.float64] | None:
         return None if self._estimator is None else self._estimator.G
+
+    @property
+    def last_good(self) -> NDArray[np.float64] | None:
+        """The estimator's last good estimate (what a restart re-acquires from first), None when there is none."""
+        return None if self._estimator is None else self._estimator.last_good
 
     @property
     def control_px(self) -> tuple[float, float]:

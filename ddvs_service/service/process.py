@@ -81,14 +81,16 @@ class ServeProcess:
         return sum(self._warm_up(robot) for robot in self.robots.values())
 
     def _warm_up(self, robot: RobotServo) -> float:
-        from ddvs_service.service.startup import warm_up
+        from ddvs_service.service.startup import needs_initialiser, warm_up
 
+        initialiser = needs_initialiser(robot.config, robot.pipeline.last_good)
         key = robot.config.registration.model_dump_json()
-        if key in self._warmed:
+        if key + "+initialiser" in self._warmed or (not initialiser and key in self._warmed):
             return 0.0
-        seconds = warm_up(robot.config, robot.pipeline.intrinsics)
-        self._warmed.add(key)
-        log.info("kernels warmed up", extra=fields(robot=robot.name, seconds=round(seconds, 3)))
+        seconds = warm_up(robot.config, robot.pipeline.intrinsics, initialiser)
+        self._warmed.add(key + "+initialiser" if initialiser else key)
+        log.info("kernels warmed up", extra=fields(robot=robot.name, seconds=round(seconds, 3),
+                                                   initialiser=initialiser))
         return seconds
 
     # --- the loop -----------------------------------------------------------------------------------------------

@@ -89,7 +89,8 @@ class RobotServo:
         self._persisted_rho: list[float] = []
         self.inbox = Inbox(wakeup=wakeup)
         self._zenoh: _Declared | None = None
-        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float]] | None = None
+        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float], NDArray | None] | None \
+            = None
         self.writer = BackgroundWriter(self.store)
         self._restore(state)
         self._persist_config()
@@ -125,17 +126,17 @@ class RobotServo:
         roi = tuple(state["roi"]) if state.get("roi") else None
         self._reference_stamp_ns = state.get("reference_stamp_ns")
         self._resume_state = ServoState(state.get("state", "READY"))
-        self._restored_reference = (reference, roi, state.get("rho_coeffs") or [])
+        self._restored_reference = (reference, roi, state.get("rho_coeffs") or [], _last_good(state))
         self._try_adopt_restored()
 
     def _try_adopt_restored(self) -> None:
         restored = self._restored_reference
         if restored is None or self.pipeline.intrinsics is None:
             return
-        reference, roi, rho_coeffs = restored
+        reference, roi, rho_coeffs, last_good = restored
         self._restored_reference = None
         try:
-            self.pipeline.set_reference(reference, roi, rho_coeffs=rho_coeffs)
+            self.pipeline.set_reference(reference, roi, rho_coeffs=rho_coeffs, last_good=last_good)
         except ValueError as exc:
             log.error("persisted reference not usable", extra=fields(error=str(exc)))
             return
@@ -152,6 +153,7 @@ class RobotServo:
             "roi": list(self.pipeline.roi) if self.pipeline.roi else None,
             "reference_stamp_ns": self._reference_stamp_ns,
             "rho_coeffs": self.pipeline.rho_coeffs,
+            "last_good_G": None if self.pipeline.last_good is None else self.pipeline.last_good.ravel().tolist(),
             "intrinsics": None if intr is None else {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                                                      "width": intr.width, "height": intr.height},
             "config_changes": self._config_changes,
@@ -201,6 +203,7 @@ class RobotServo:
                                                         **self.current_counters().model_dump(),
                                                         received=self.inbox.frames_received))
         finally:
+            self._persist_state()  # with the last good estimate, where a restart re-acquires from first
             self.writer.close()
             self.pipeline.close()
 
@@ -473,3 +476,19 @@ def _grey_view(array: NDArray, encoding: str) -> NDArray:
     if encoding.startswith("rgb"):
         array = array[..., 2::-1]
     return array
+
+
+def _last_good(state: dict[str, Any]) -> NDArray | None:
+    """The persisted last good estimate `G` (3×3, finite, positive determinant), None when absent or unusable."""
+    values = state.get("last_good_G")
+    if values is None:
+        return None
+    try:
+        G = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        G = np.full(1, np.nan)
+    if G.shape != (9,) or not np.all(np.isfinite(G)) or np.linalg.det(G.reshape(3, 3)) <= 0.0:
+        log.error("persisted last good estimate not usable; the first frame is initialised globally",
+                  extra=fields(last_good_G=values))
+        return None
+    return G.reshape(3, 3)

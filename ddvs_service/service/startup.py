@@ -18,6 +18,7 @@ import time
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.service.config import ServiceConfig
@@ -42,18 +43,29 @@ def synthetic_scene(intrinsics: Intrinsics, seed: int = 0) -> np.ndarray:
     return np.clip(cv2.GaussianBlur(noise, (0, 0), 2.0) * 3.0 - 255.0, 0, 255).astype(np.uint8)
 
 
-def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None) -> float:
-    """Run the configured frame path once on a synthetic scene; return the seconds it took."""
+def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: bool = True) -> float:
+    """Run the configured frame path once on a synthetic scene; return the seconds it took. `initialiser` False:
+    the tracking path only (a planar robot resuming from its persisted last good estimate; `needs_initialiser`)."""
     t0 = time.monotonic()
     intrinsics = intrinsics or _fitting(WARM_UP_INTRINSICS, config.registration.roi)
     pipeline = ServoPipeline(config, intrinsics, background_reacquisition=False)  # the initialiser on this thread
     reference = synthetic_scene(intrinsics)
-    pipeline.set_reference(reference)
+    pipeline.set_reference(reference, G0=None if initialiser else np.eye(3))
     pipeline.machine.start()
-    for dx in (1.5, 2.0):  # the first frame goes through the global initialiser, the second is tracked
+    for dx in (1.5, 2.0):  # the first frame goes through the global initialiser (unless G0), the second is tracked
         pipeline.step(cv2.warpAffine(reference, np.array([[1.0, 0.0, dx], [0.0, 1.0, -dx]]),
                                      (intrinsics.width, intrinsics.height), borderMode=cv2.BORDER_REFLECT))
     return time.monotonic() - t0
+
+
+def needs_initialiser(config: ServiceConfig, last_good: NDArray[np.float64] | None) -> bool:
+    """Whether a robot's first frame may need the global initialiser's kernels: always without a last good estimate
+    to re-acquire from (a new reference, a first start), and always for the general model (its warm-up estimates
+    ρ* through the initialiser). A planar robot resuming from its persisted estimate does not: its warm-up leaves
+    the initialiser's kernels (about half of a warm start's compile time) to the first search that needs them, on
+    the re-acquisition worker. That compile holds the GIL (Taichi's code generation does not release it), so the
+    process's loop pauses for it once (about 0.4 s of CPU), while that robot is LOST and its twist zero."""
+    return last_good is None or config.registration.model == "general"
 
 
 def warm_up_configured(fleet: FleetConfig) -> dict[str, float]:
