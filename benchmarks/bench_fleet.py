@@ -14,7 +14,9 @@ answered when its twist arrived (a twist withheld as stale, or a frame dropped b
 Modes: `shared` — one `ddvs serve --robots r0 … rN-1`; `separate` — N `ddvs serve --robot ri` processes (today's
 deployment). Every plant warms up (its robot answered 30 frames) before a common measuring window of `--seconds`
 starts; over that window the parent reads each service process's CPU time (`/proc/<pid>/stat`, user + system,
-as % of one core) and, at its end, its resident memory (VmRSS). The load average is printed with every row, and
+as % of one core) and, at its end, its resident memory (VmRSS), and asks each for its robots' counters at both
+ends (`list_robots`; `service_counters`: frames received, taken by the loop, registered, superseded in the inbox —
+`dropped` —, stale, rejected). The load average is printed with every row, and
 how many robots publish within 5 ms of one another (`crowd`: each plant keeps its own 30 Hz schedule, so the phases
 its start gave it hold for the whole run, and the frames that meet there wait for each other once every period).
 `--trace`: the plants also read their robots' status and the row says what became of each frame not answered
@@ -63,6 +65,7 @@ from ddvs_service.protocol import (  # noqa: E402
     image_from_array,
     open_session,
 )
+from ddvs_service.protocol.control import process_command_key  # noqa: E402
 from ddvs_service.protocol.upload import encode_upload  # noqa: E402
 from sim.planar_scene import POSTER_BLUR_SIGMA, PlanarScene  # noqa: E402
 from sim.textures import load_texture  # noqa: E402
@@ -102,7 +105,7 @@ def start_pose(seed: int) -> np.ndarray:
 def publish(robot: str, port: int, seed: int, trace: bool) -> None:
     """Plant process of `robot`: uploads the reference, starts the servo, closes the loop at 30 Hz; prints `ready`
     after the warm-up, reads `T0 SECONDS` (wall clock, s) from stdin, prints its figures as JSON after the window.
-    `trace`: also subscribe to the robot's status and say what became of each frame not answered (`trace`)."""
+    `trace`: also subscribe to the robot's status and say what became of each frame (`frame_trace`)."""
     scene = plant_scene()
     keys = Keys("ddvs", robot)
     session = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
@@ -210,7 +213,8 @@ def frame_trace(stamps: list[int], measured: list[int], arrivals: dict[int, int]
     it processed (`frame_stamp_ns`, `message`, `counters`): `stale` (processed, twist withheld: its message says
     so), `twist_lost` (processed, not stale, yet no twist arrived), `superseded` (never processed, and the service's
     `dropped` counter grew between the processed frames around it: a newer frame replaced it in the inbox), `lost`
-    (never processed and not counted dropped: it did not reach the service's inbox). And `parts_ms`, where the
+    (never processed and not counted dropped: it did not reach the service's inbox — or the statuses around it
+    were lost, which the status key's congestion control allows). And `parts_ms`, where the
     time of every answered frame went (`split_latency`)."""
     index = {s: k for k, s in enumerate(stamps)}
     missed = []
@@ -318,10 +322,15 @@ def measure(mode: str, n: int, seconds: float, shm: bool, trace: bool) -> dict[s
                 assert plant.stdin is not None
                 plant.stdin.write(f"{t0} {seconds}\n")
                 plant.stdin.flush()
+            listing = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{p}" for p in sorted(set(ports.values()))]))
+            processes = robots[:1] if mode == "shared" else robots  # a process is named after its first robot
             time.sleep(max(0.0, t0 - time.time()))
             cpu0, load0 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
+            counted0 = service_counters(listing, processes)
             time.sleep(seconds)
             cpu1, load1 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
+            counted1 = service_counters(listing, processes)
+            listing.close()
             memory = [memory_mb(p.pid) for p in services]
             results = []
             for plant in plants:
@@ -336,8 +345,26 @@ def measure(mode: str, n: int, seconds: float, shm: bool, trace: bool) -> dict[s
                     proc.wait(timeout=60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
+    counted = {name: sum(counted1[r][name] - counted0[r][name] for r in robots) for name in counted0[robots[0]]}
     return {**summarise(mode, n, seconds, results, cpu1, cpu0, memory, load0, load1, ready_s), "shm": shm,
-            "realtime_priority": os.sched_getparam(0).sched_priority}
+            "service_counters": counted, "realtime_priority": os.sched_getparam(0).sched_priority}
+
+
+def service_counters(session: Any, processes: list[str]) -> dict[str, dict[str, int]]:
+    """Each robot's counters as its service process reports them (`list_robots`): `received` (frames that reached
+    the process), `taken` (by the loop), and the `Status` counters (`frames` registered, `dropped`: superseded in the
+    inbox, `stale`, `rejected`, `idle`)."""
+    counted = {}
+    for process in processes:
+        for reply in session.get(process_command_key("ddvs", process), payload=dump(Command(op="list_robots")),
+                                 timeout=10.0):
+            if reply.ok is None:
+                raise RuntimeError(f"process {process}: list_robots answered with a Zenoh error")
+            listed = Reply.model_validate_json(reply.ok.payload.to_bytes())
+            assert listed.data is not None, listed.error
+            for r in listed.data["robots"]:
+                counted[r["robot"]] = {"received": r["received"], "taken": r["fairness"]["frames"], **r["counters"]}
+    return counted
 
 
 def summarise(mode: str, n: int, seconds: float, results: list[dict[str, Any]], cpu1: list[float],

@@ -213,6 +213,7 @@ class ServeProcess:
     def _summary(self, robot: RobotServo) -> dict[str, Any]:
         fair = self.scheduler.fairness[robot.name]
         return {"robot": robot.name, "prefix": robot.config.prefix, "state": robot.pipeline.machine.state.value,
-                "state_dir": str(robot.store.dir), "counters": robot.current_counters().model_dump(),
+                "state_dir": str(robot.store.dir), "received": robot.inbox.frames_received,
+                "counters": robot.current_counters().model_dump(),
                 "fairness": {"frames": fair.frames, "max_waited": fair.max_waited,
                              "max_waited_one_robot": fair.max_waited_one_robot}}
