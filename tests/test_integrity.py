@@ -141,9 +141,10 @@ def test_a_fit_whose_error_jumps_moves_nothing(frames) -> None:
 
 
 # --- the tracker: anchored scale and implausible fits ----------------------------------------------------------
-def _shifted_frames(occluded_from: int, n: int, fraction: float):
+def _shifted_frames(occluded_from: int, n: int, fraction: float, enter_frames: int = 1, roi=(125, 85, 70, 70)):
     """A 320×240 view of the graf texture shifted by (0.3 k, 0.15 k) px in frame k, and from frame `occluded_from`
-    on the left of the image up to `fraction` of the 70×70 template covered by another scene (boat)."""
+    on the left of the image up to `fraction` of the template box `roi` covered by another scene (boat), reached
+    over `enter_frames` frames (sliding in from the left, as `sim.conditions.Occluder`)."""
     import cv2
 
     from sim.textures import load_texture
@@ -153,13 +154,12 @@ def _shifted_frames(occluded_from: int, n: int, fraction: float):
                                                                                                 w // 2 : w // 2 + w]
     reference = np.ascontiguousarray(reference)
     other = cv2.resize(load_texture("boat"), (w, h), interpolation=cv2.INTER_AREA)
-    roi = (125, 85, 70, 70)
     frames = []
     for k in range(n):
         shift = np.array([[1.0, 0.0, 0.3 * k], [0.0, 1.0, 0.15 * k]])
         frame = cv2.warpAffine(reference, shift, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         if k >= occluded_from:
-            cols = int(roi[0] + fraction * roi[2])
+            cols = int(roi[0] + fraction * min(1.0, (k - occluded_from + 1) / enter_frames) * roi[2])
             frame[:, :cols] = other[:, w - cols :]
         frames.append((np.rint(frame).astype(np.float32), (0.3 * k, 0.15 * k)))
     return reference, roi, frames
@@ -187,6 +187,37 @@ def test_tracker_inlier_ratio_measures_a_sudden_occluder() -> None:
                 assert result.inlier_ratio < 0.8, (robust, k, result.inlier_ratio)
             if robust == "tukey":
                 assert error < 0.5, (k, error)
+
+
+def test_tracker_follows_an_occluder_sliding_over_more_than_half_the_template() -> None:
+    """Issue 20 (the planar hard combination from s4k0 went LOST at image 115, 52 mm from the goal): an occluder
+    sliding in covered 57 % of the template there, the fit 0.08 px from the truth with 46 % of the pixels inliers,
+    and the engine refused it (fewer than `min_inlier_ratio` 0.5), then the integrity check (the frame's scale, the
+    median of a majority of occluder residuals, 28 grey levels > 4 × the anchor's 4.1). Here 60 % of the shipped
+    140×140 template covered over 10 frames: tracked to the end within 0.6 px at the corners (two of them hidden),
+    at a support under half the pixels; the same occluder at once (a support lost in one frame, as a wrong
+    optimum's) is still refused."""
+    from ddvs_service.registration.config import RegistrationConfig
+    from ddvs_service.registration.tracker import Tracker
+
+    config = RegistrationConfig(levels=3, robust="tukey")
+    roi = (90, 50, 140, 140)
+    x, y, w, h = roi
+    corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1.0, 1.0, 1.0, 1.0]])
+    for enter_frames in (10, 1):
+        reference, _, frames = _shifted_frames(6, 20, 0.6, enter_frames, roi)
+        tracker = Tracker.prepare(reference, roi, config)
+        for k, (frame, (tx, ty)) in enumerate(frames):
+            result = tracker.track(frame)
+            q = result.G @ corners
+            error = float(np.max(np.abs(q[:2] / q[2] - corners[:2] - np.array([[tx], [ty]]))))
+            if enter_frames == 1 and k == 6:
+                assert not result.converged, (k, result.inlier_ratio)
+                break
+            assert result.converged, (enter_frames, k, result.reason)
+            assert error < 0.6, (k, error)
+        if enter_frames == 10:
+            assert result.inlier_ratio < 0.5  # the last frames: fewer than half the pixels support the fit
 
 
 def test_stop_decision_averages_the_estimation_noise_out() -> None:

@@ -17,7 +17,7 @@ pixels covers columns x … x + w − 1 and rows y … y + h − 1.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -149,6 +149,7 @@ class PlanarRegistration:
         first_level: int | None = None,
         tolerance_px: float | None = None,
         scale_cap: float | None = None,
+        min_inlier_ratio: float | None = None,
     ) -> RegistrationResult:
         """Register `current` starting from `G0` (any scale, positive determinant; identity by default), gains and
         bias (eq. (4)) and robust scale σ (grey levels; `None`: estimated from a first least-squares evaluation).
@@ -157,7 +158,9 @@ class PlanarRegistration:
 
         `first_level`: the coarsest pyramid level to solve (0 = full resolution only); the coarsest available by
         default. A warm start whose predicted motion is small starts finer and skips the coarse levels' cost.
-        `tolerance_px`: convergence tolerance at full resolution (`config.step_tolerance_px` by default)."""
+        `tolerance_px`: convergence tolerance at full resolution (`config.step_tolerance_px` by default).
+        `min_inlier_ratio`: the inlier ratio this call's result needs (`config.min_inlier_ratio` by default; a
+        tracker lowers it while an occluder slides over the template, `integrity.Integrity.inlier_floor`)."""
         cur = checked_grey(current, "current")
         if cur.shape != self.shape:
             raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
@@ -186,7 +189,8 @@ class PlanarRegistration:
                                lambda: self._solve_level(level, state, tolerance))
 
         outcome = coarse_to_fine(levels, solve)
-        converged, reason = with_inliers(outcome.converged, outcome.reason, state.inlier_ratio, self.config)
+        config = self.config if min_inlier_ratio is None else replace(self.config, min_inlier_ratio=min_inlier_ratio)
+        converged, reason = with_inliers(outcome.converged, outcome.reason, state.inlier_ratio, config)
         return RegistrationResult(
             G=state.G, S=state.gains.copy(), beta=state.beta, iterations=outcome.iterations,
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio, converged=converged, reason=reason,

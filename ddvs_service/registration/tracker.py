@@ -75,8 +75,10 @@ class Tracker:
             config = self._problem.config
             tolerance = config.tracking_step_tolerance_px
             cap = self._integrity.scale_cap
+            floor = self._integrity.inlier_floor(config.min_inlier_ratio)  # lower while an occluder slides in
             result = self._problem.run(current, G0=start, gains0=self._gains, beta0=self._beta, scale0=self._scale,
-                                       first_level=config.tracking_levels - 1, tolerance_px=tolerance, scale_cap=cap)
+                                       first_level=config.tracking_levels - 1, tolerance_px=tolerance, scale_cap=cap,
+                                       min_inlier_ratio=floor)
             if not result.converged and (start is not self._G or len(result.iterations) < len(self._problem.levels)):
                 # the robust scale re-estimated on this frame: a sudden motion of several pixels leaves the last
                 # frames' σ far below this frame's residuals, and Tukey weights at that σ reject the signal itself
@@ -87,7 +89,7 @@ class Tracker:
         if not np.all(np.isfinite(result.G)):
             return self._failure(f"non-finite estimate ({result.reason})")
         if result.converged:
-            implausible = self._integrity.judge(start, result.G, result.scale)
+            implausible = self._integrity.judge(start, result.G, result.scale, result.inlier_ratio)
             if implausible:
                 result.converged, result.reason = False, implausible
         if result.converged:

@@ -137,9 +137,9 @@ class PlanarEstimator:
             beside = isinstance(self._acquire, BackgroundReacquisition)  # the worker tries the last good itself
             if self._last_good is not None and not beside:
                 result = self._tracker.track(grey)
-                if _accepted(result, self.settings):
+                if _accepted(result):
                     message = "re-acquired by tracking from the last good estimate"
-            if not (result is not None and _accepted(result, self.settings)):
+            if not (result is not None and _accepted(result)):
                 init = self._search(grey)
                 if init.G is None:  # never track on from an unconfirmed estimate
                     local = "" if result is None else f"tracking from the last good estimate: {result.reason}; "
@@ -155,7 +155,7 @@ class PlanarEstimator:
                 result = None
         if result is None:
             result = self._tracker.track(grey)
-        tracked = _accepted(result, self.settings)
+        tracked = _accepted(result)
         self._needs_init = not tracked
         if tracked:
             self._before, self._last_good = G_before, result.G
@@ -177,7 +177,7 @@ class PlanarEstimator:
         registers the frame and passes this estimator's checks."""
         def retry(current: NDArray[np.float32], start: F64) -> bool:
             trial.reset(start)
-            return _accepted(trial.track(current), self.settings)
+            return _accepted(trial.track(current))
         return retry
 
 
@@ -242,7 +242,7 @@ class GeneralEstimator:
             rho = self._tracker.rho_coeffs
             if rho is None:
                 return False
-            return _accepted(searcher.track(current, start, np.zeros(3), rho), self.settings)
+            return _accepted(searcher.track(current, start, np.zeros(3), rho))
         return retry
 
     def residual(self, grey: NDArray[np.float32]) -> None:
@@ -252,7 +252,7 @@ class GeneralEstimator:
     def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
         adopted = self._search.adopted
         result = self._tracker.track(grey)
-        tracked = _accepted(result, self.settings)
+        tracked = _accepted(result)
         message = "" if tracked else f"registration: {result.reason} {result.flags}"
         if tracked:
             self._G = result.G
@@ -317,9 +317,11 @@ def _reacquisition(engine: PlanarRegistration, general: GeneralRegistration | No
         engine, general, config)
 
 
-def _accepted(result: RegistrationResult, settings: RegistrationSettings) -> bool:
-    """A registration the service acts on: converged, with at least `min_inlier_ratio` of the ROI's pixels inliers."""
-    return result.converged and result.inlier_ratio >= settings.min_inlier_ratio
+def _accepted(result: RegistrationResult) -> bool:
+    """A registration the service acts on: converged. The engine's verdict needs `min_inlier_ratio` of the ROI's
+    pixels inliers, or a tracker's lower floor while an occluder slides over the template
+    (`registration.integrity.Integrity.inlier_floor`)."""
+    return result.converged
 
 
 def _finite(x: float) -> float:
