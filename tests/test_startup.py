@@ -9,7 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.startup import needs_initialiser
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,3 +63,15 @@ def test_warmup_only_refuses_no_warmup(tmp_path: Path) -> None:
     done = serve(config, tmp_path / "ticache", "--warmup-only", "--no-warmup")
     assert done.returncode == 2
     assert any("--warmup-only and --no-warmup" in r.get("error", "") for r in records(done.stderr))
+
+
+def test_only_a_planar_robot_resuming_alone_leaves_the_initialiser_to_its_first_search() -> None:
+    """The warm-up skips the global initialiser's kernels only where the first frame is re-acquired from a persisted
+    estimate and no other robot of the process would share the pause of their later compile."""
+    planar = ServiceConfig()
+    general = planar.model_copy(update={"registration": planar.registration.model_copy(update={"model": "general"})})
+    last_good = np.eye(3)
+    assert not needs_initialiser(planar, last_good, alone=True)
+    assert needs_initialiser(planar, None, alone=True)
+    assert needs_initialiser(planar, last_good, alone=False)
+    assert needs_initialiser(general, last_good, alone=True)

@@ -83,7 +83,8 @@ class ServeProcess:
     def _warm_up(self, robot: RobotServo) -> float:
         from ddvs_service.service.startup import needs_initialiser, warm_up
 
-        initialiser = needs_initialiser(robot.config, robot.pipeline.last_good)
+        alone = all(other is robot for other in self.robots.values())
+        initialiser = needs_initialiser(robot.config, robot.pipeline.last_good, alone)
         key = robot.config.registration.model_dump_json()
         if key + "+initialiser" in self._warmed or (not initialiser and key in self._warmed):
             return 0.0

@@ -58,14 +58,16 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: b
     return time.monotonic() - t0
 
 
-def needs_initialiser(config: ServiceConfig, last_good: NDArray[np.float64] | None) -> bool:
-    """Whether a robot's first frame may need the global initialiser's kernels: always without a last good estimate
-    to re-acquire from (a new reference, a first start), and always for the general model (its warm-up estimates
-    ρ* through the initialiser). A planar robot resuming from its persisted estimate does not: its warm-up leaves
-    the initialiser's kernels (about half of a warm start's compile time) to the first search that needs them, on
-    the re-acquisition worker. That compile holds the GIL (Taichi's code generation does not release it), so the
-    process's loop pauses for it once (about 0.4 s of CPU), while that robot is LOST and its twist zero."""
-    return last_good is None or config.registration.model == "general"
+def needs_initialiser(config: ServiceConfig, last_good: NDArray[np.float64] | None, alone: bool) -> bool:
+    """Whether a robot's warm-up must compile the global initialiser's kernels too: always without a last good
+    estimate to re-acquire from (a new reference, a first start), for the general model (its warm-up estimates ρ*
+    through the initialiser) and when the process serves other robots (`alone` False). A planar robot resuming
+    alone from its persisted estimate does not: its warm-up leaves the initialiser's kernels (about half of a warm
+    start's compile time) to the first search that needs them, on the re-acquisition worker. That compile holds the
+    GIL (Taichi's code generation does not release it), so the loop pauses for it once (about 0.4 s of CPU, more
+    wall time on a loaded host) while the robot is LOST and its twist zero — a pause other robots of the process
+    would share while they move, hence not with them."""
+    return last_good is None or config.registration.model == "general" or not alone
 
 
 def warm_up_configured(fleet: FleetConfig) -> dict[str, float]:
