@@ -43,6 +43,13 @@ class RegistrationConfig:
       convergence) while the iterations per frame fall from 3.0 to 1.5.
     - `tracking_levels`: pyramid levels the `Tracker` uses from a warm start (consecutive frames move little); it
       retries with every level when that does not converge (at most `levels` are used).
+    - `tracking_give_up_iterations`: the iterations after which the `Tracker`'s attempts give up on a level that
+      has not converged: a coarse one, or the finest while its inlier ratio is below `min_inlier_ratio`
+      (`solver.gauss_newton`'s `give_up_below`). A frame within reach converges at a coarse level in a few (the
+      retry over the pyramid after a 3° / 1 cm jump: 2–5) and keeps its support at the finest (the warm starts of
+      the robustness runs: above 0.56 after the first step, up to 23 iterations under noise), so the frame that
+      discovers a loss (the target hidden or out of reach) costs about twice this many iterations, not
+      `max_iterations` at every level of both attempts.
     - `predict_motion`: the `Tracker` starts a frame from the constant-velocity extrapolation of the last two good
       estimates (falling back to the last estimate when that fails); off: from the last estimate.
     - `max_step_fraction`: an update moving a corner by more than this fraction of the ROI size is scaled down.
@@ -73,6 +80,7 @@ class RegistrationConfig:
     coarse_step_tolerance_px: float = 0.05
     tracking_step_tolerance_px: float = 1e-2
     tracking_levels: int = 1
+    tracking_give_up_iterations: int = 10
     predict_motion: bool = True
     max_step_fraction: float = 0.25
     scale_floor: float = 0.5
@@ -109,6 +117,8 @@ class RegistrationConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.tracking_levels < 1:
             raise ValueError(f"tracking_levels must be ≥ 1, got {self.tracking_levels}")
+        if self.tracking_give_up_iterations < 1:
+            raise ValueError(f"tracking_give_up_iterations must be ≥ 1, got {self.tracking_give_up_iterations}")
         if not self.scale_floor > 0.0:
             raise ValueError(f"scale_floor must be > 0 grey levels, got {self.scale_floor}")
         if self.min_level_size < 8:

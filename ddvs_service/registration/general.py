@@ -192,7 +192,7 @@ class GeneralRegistration:
     def track(
         self, current: F32, G0: F64, e0: F64, rho: F64, gains0: ArrayLike | float = 1.0, beta0: float = 0.0,
         scale0: float | None = None, first_level: int | None = None, tolerance_px: float | None = None,
-        scale_cap: float | None = None,
+        scale_cap: float | None = None, give_up: bool = False,
     ) -> GeneralResult:
         """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
         when ρ* is 0 (planar). The result carries the information on ρ* (`_rho_information`) of the first
@@ -202,7 +202,9 @@ class GeneralRegistration:
         `first_level`: the coarsest pyramid level solved (0 = full resolution only; default the coarsest), as
         `PlanarRegistration.run`: a warm start with small predicted motion skips the coarse levels.
         `tolerance_px`: convergence tolerance at full resolution (`config.base.step_tolerance_px` by default; the
-        tracker passes `tracking_step_tolerance_px`). `scale_cap`: the largest robust scale used, as
+        tracker passes `tracking_step_tolerance_px`). `scale_cap`: the largest robust scale used, and `give_up`: a
+        tracker's attempt, which ends early on a hopeless frame (`solver.gauss_newton`, below
+        `config.base.min_inlier_ratio`), as
         `PlanarRegistration.run`."""
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         pyramid = self._load_current(current, len(levels))
@@ -214,7 +216,8 @@ class GeneralRegistration:
         free_e = bool(np.any(state.c != 0.0))
         information = free_e and self._observed(state)
         outcome = coarse_to_fine(levels, lambda level: self._solve(
-            level, pyramid, state, free_e=free_e, free_rho=False, tolerance_px=tolerance_px, information=information))
+            level, pyramid, state, free_e=free_e, free_rho=False, tolerance_px=tolerance_px, information=information,
+            give_up_below=self.config.base.min_inlier_ratio if give_up else None))
         if outcome.failed:
             return self._failed(state, outcome.reason, flags_for(outcome.reason), outcome.iterations)
         observed = state.information is not None and self._observed(state)
@@ -286,17 +289,18 @@ class GeneralRegistration:
     def _solve(
         self, level: Level, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool,
         tolerance_px: float | None = None, information: bool = False,
+        give_up_below: float | None = None,
     ) -> LevelOutcome:
         """Gauss-Newton (`solver.gauss_newton`) at one level. Converged: the probe points' motion still to come is
         below `tolerance_px` (full resolution; `step_tolerance_px` by default) at the finest level, below
         `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level). `information`
         (ρ* fixed): the first finest-level launch also carries the ρ* columns; their information goes to
-        `state.information`, and they are dropped from that step."""
+        `state.information`, and they are dropped from that step. `give_up_below`: as `solver.gauss_newton`'s."""
         cfg = self.config.base
         fine = cfg.step_tolerance_px if tolerance_px is None else tolerance_px
         tolerance = fine if level.index == 0 else cfg.coarse_step_tolerance_px
         model = _GeneralLevel(self, level, pyramid[level.index], state, free_e, free_rho, information)
-        return gauss_newton(model, state, cfg, level.index, level.n_pixels, level.size, tolerance)
+        return gauss_newton(model, state, cfg, level.index, level.n_pixels, level.size, tolerance, give_up_below)
 
     def _apply(self, state: _State, delta: F64, level: Level, layout: ParamLayout) -> _State:
         """The state after the update `delta` (in `layout`; module docstring), normalised to det G = 1."""

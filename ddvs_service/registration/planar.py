@@ -149,6 +149,7 @@ class PlanarRegistration:
         first_level: int | None = None,
         tolerance_px: float | None = None,
         scale_cap: float | None = None,
+        give_up: bool = False,
         min_inlier_ratio: float | None = None,
     ) -> RegistrationResult:
         """Register `current` starting from `G0` (any scale, positive determinant; identity by default), gains and
@@ -159,6 +160,8 @@ class PlanarRegistration:
         `first_level`: the coarsest pyramid level to solve (0 = full resolution only); the coarsest available by
         default. A warm start whose predicted motion is small starts finer and skips the coarse levels' cost.
         `tolerance_px`: convergence tolerance at full resolution (`config.step_tolerance_px` by default).
+        `give_up`: a tracker's attempt from `G0`, which ends early on a hopeless frame (`solver.gauss_newton`, below
+        the inlier ratio the result needs).
         `min_inlier_ratio`: the inlier ratio this call's result needs (`config.min_inlier_ratio` by default; a
         tracker lowers it while an occluder slides over the template, `integrity.Integrity.inlier_floor`)."""
         cur = checked_grey(current, "current")
@@ -172,11 +175,13 @@ class PlanarRegistration:
                        scale_cap=float("inf") if scale_cap is None else float(scale_cap))
         pyramid = self.load_current(cur, len(levels))
         fine = self.config.step_tolerance_px if tolerance_px is None else tolerance_px
+        needed = self.config.min_inlier_ratio if min_inlier_ratio is None else min_inlier_ratio
+        give_up_below = needed if give_up else None
 
         def solve(level: Level) -> LevelOutcome:
             tolerance = fine if level.index == 0 else self.config.coarse_step_tolerance_px
             if level is not levels[-1] or G0 is not None:
-                return self._solve_level(level, state, tolerance)
+                return self._solve_level(level, state, tolerance, give_up_below=give_up_below)
             # Cold start: find the shift and a rough angle by correlation (`coarse_search`), match the photometric
             # moments, then settle the similarity part with the photometric unknowns frozen (a misaligned
             # least-squares gain shrinks towards 0 and erases the signal).
@@ -256,12 +261,14 @@ class PlanarRegistration:
         tolerance: float,
         geometric: tuple[int, ...] | None = None,
         photometric: bool = True,
+        give_up_below: float | None = None,
     ) -> LevelOutcome:
-        """Gauss-Newton (`solver.gauss_newton`) at one level over the sl(3) coordinates `geometric` (all of them
-        when None) and the photometric unknowns unless `photometric` is False, until the corner motion still to come
-        is below `tolerance` level pixels; updates `state`."""
+        """Gauss-Newton (`solver.gauss_newton`, with its `give_up_below`) at one level over the sl(3) coordinates
+        `geometric` (all of them when None) and the photometric unknowns unless `photometric` is False, until the
+        corner motion still to come is below `tolerance` level pixels; updates `state`."""
         model = _PlanarLevel(self, level, state, geometric, photometric)
-        outcome = gauss_newton(model, state, self.config, level.index, level.n_pixels, level.size, tolerance)
+        outcome = gauss_newton(model, state, self.config, level.index, level.n_pixels, level.size, tolerance,
+                               give_up_below)
         state.G = sl3_normalize(level.D_inv @ model.G_l @ level.D)
         return outcome
 

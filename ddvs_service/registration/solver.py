@@ -134,10 +134,16 @@ class Outcome:
 
 def gauss_newton(
     model: LevelModel[C], fit: Fit, config: RegistrationConfig, level_index: int, n_pixels: int, size: float,
-    tolerance: float,
+    tolerance: float, give_up_below: float | None = None,
 ) -> LevelOutcome:
     """Iterate at one level (module docstring) until the motion still to come is below `tolerance` (level pixels),
-    at most `config.max_iterations` times. `n_pixels`: the level's ROI pixels; `size`: the ROI's larger side."""
+    at most `config.max_iterations` times. `n_pixels`: the level's ROI pixels; `size`: the ROI's larger side.
+
+    `give_up_below` (the trackers' attempts, which a lost frame must not make slow: the inlier ratio their result
+    needs): after `config.tracking_give_up_iterations` iterations without converging, the level has failed, which
+    ends the coarse-to-fine solve, unless it is the finest and its inlier ratio is at least `give_up_below`. A frame
+    within reach converges at a coarse level in a few iterations, and a slow one at the finest level (noise) keeps
+    its support; on a lost frame (the target hidden or out of reach) every level would run `max_iterations`."""
     limit = config.max_step_fraction * size
     steps: list[float] = []
     for it in range(1, config.max_iterations + 1):
@@ -172,6 +178,10 @@ def gauss_newton(
         if remaining < tolerance:
             return LevelOutcome(it, True, f"converged: last step {step:.1e} px, at most {remaining:.1e} px left "
                                           f"< {tolerance:g} px", False)
+        if give_up_below is not None and it == config.tracking_give_up_iterations and (
+                level_index > 0 or fit.inlier_ratio < give_up_below):
+            why = "a coarse level" if level_index > 0 else f"inlier ratio {fit.inlier_ratio:.3f} < {give_up_below:g}"
+            return LevelOutcome(it, False, f"given up at level {level_index} after {it} iterations ({why})", True)
     return LevelOutcome(config.max_iterations, False,
                         f"max_iterations ({config.max_iterations}) reached at level {level_index}", False)
 

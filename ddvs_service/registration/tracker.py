@@ -4,7 +4,11 @@ Consecutive frames move little, so a frame is first solved on the finest `config
 only, from a constant-velocity prediction when `config.predict_motion` is set and the last two frames converged:
 `G_k = G_{k−1} · G_{k−2}⁻¹ · G_{k−1}` (the last inter-frame motion `G_{k−1} G_{k−2}⁻¹`, in current-image pixels,
 applied once more). When that does not converge the frame is solved again from the last good estimate over the
-whole pyramid, its robust scale estimated afresh (no cap).
+whole pyramid, its robust scale estimated afresh (no cap). Both attempts give up on a level not converged after
+`config.tracking_give_up_iterations` iterations, unless it is the finest and keeps the inlier ratio the result needs
+(`solver.gauss_newton`'s `give_up_below`): a frame within reach converges at a coarse level in a few and keeps its
+support at the finest, while on a lost frame (the target hidden or out of reach) every level of both attempts would
+run `max_iterations`; the frame that discovers the loss costs about twice `tracking_give_up_iterations`.
 
 The state is `G` (SL(3), reference → current full-image pixels), the gains `S`, the bias `β` (eq. (4)) and the
 robust scale σ. Integrity (`registration.integrity`): the σ the engine uses is capped at a multiple of the scale of
@@ -78,12 +82,12 @@ class Tracker:
             floor = self._integrity.inlier_floor(config.min_inlier_ratio)  # lower while an occluder slides in
             result = self._problem.run(current, G0=start, gains0=self._gains, beta0=self._beta, scale0=self._scale,
                                        first_level=config.tracking_levels - 1, tolerance_px=tolerance, scale_cap=cap,
-                                       min_inlier_ratio=floor)
+                                       give_up=True, min_inlier_ratio=floor)
             if not result.converged and (start is not self._G or len(result.iterations) < len(self._problem.levels)):
                 # the robust scale re-estimated on this frame: a sudden motion of several pixels leaves the last
                 # frames' σ far below this frame's residuals, and Tukey weights at that σ reject the signal itself
                 result = self._problem.run(current, G0=self._G, gains0=self._gains, beta0=self._beta,
-                                           scale0=None, tolerance_px=tolerance)
+                                           scale0=None, tolerance_px=tolerance, give_up=True)
         except Exception as exc:  # the tracker's contract: report, never raise
             return self._failure(f"error: {type(exc).__name__}: {exc}")
         if not np.all(np.isfinite(result.G)):
