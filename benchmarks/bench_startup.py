@@ -3,7 +3,9 @@
 A service that was servoing is restarted while a camera publishes at 30 Hz (this process, stamps = wall clock):
 `alive` is the first reply to `get_state`, `first answer` the first twist answering a frame (a zero one while the
 service is still re-acquiring counts), `first twist` the first non-zero one (the servo moving again), all measured
-from the moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). This process
+from the moment the process was spawned, with the Taichi offline cache warm (one run beforehand fills it). That
+first run tracks the camera until the servo moves, so each restart resumes from a persisted last good estimate, and
+the camera's view goes on where the last run stopped (the arm stays still while the service is down). This process
 listens and the service connects to it as it opens its session, so no reconnection period of Zenoh's is measured.
 The warm-up (the default) compiles the configuration's kernels before the service declares itself alive;
 `--no-warmup` leaves them to the first frame. The warm-up's own time is read from the service's log. Besides wall
@@ -14,8 +16,13 @@ after its first twist: on a shared host the wall time grows with the load, the C
 (`benchmarks/startup_phases.py`: imports, `ti.init`, robots, the warm-up's Taichi front end and the rest), each a
 fresh process on the same warm cache: median and range of wall and CPU time per phase.
 
-    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--phases 0] [--gain-grid 1 1] [--model planar]
-        [--markdown]
+`--jump N` adds N restarts whose camera, once the servo moves, jumps twice to a view only the global initialiser
+finds (the scene turned by `JUMP_DEG`, then back): the loop's longest pause between two answers until the servo
+moves again, and how long that took. A servo resumed from its estimate compiles the initialiser's kernels at the
+first of those searches (`service.startup.needs_initialiser`).
+
+    .venv/bin/python benchmarks/bench_startup.py [--runs 3] [--phases 0] [--jump 0] [--gain-grid 1 1]
+        [--model planar] [--markdown]
 """
 
 from __future__ import annotations
