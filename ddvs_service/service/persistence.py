@@ -3,8 +3,9 @@
 Layout of `state_dir`:
 - `reference.png`   the reference image (lossless; 8-bit grey or colour as received, 16-bit kept as 16-bit)
 - `config.json`     the active service configuration (written at start and on every accepted change; for readers)
-- `state.json`      servo state, ROI, reference stamp, the parallax estimate, the camera intrinsics last received
-                    and the configuration changes made at run time (what a restart applies again)
+- `state.json`      servo state, ROI, reference stamp, the parallax estimate, the camera intrinsics last received,
+                    the configuration changes made at run time (what a restart applies again) and the last good
+                    estimate `G` (where a restart re-acquires from first)
 
 Every write goes to a temporary file in the same directory, is flushed and fsync'ed, then renamed over the target
 (`os.replace`, atomic on POSIX), and the directory is fsync'ed: a crash leaves either the old or the new file, never a
