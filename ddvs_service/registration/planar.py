@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ddvs_service.lie import sl3_exp, sl3_normalize
+from ddvs_service.lie import SL3_GENERATORS, sl3_exp, sl3_normalize
 from ddvs_service.registration.coarse_search import coarse_alignment, usable_pixels
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, checked_grey
@@ -69,6 +69,7 @@ class _State:
     inlier_ratio: float = 0.0
     cost: float = float("inf")
     scale_cap: float = float("inf")
+    information: F64 | None = None  # JᵀWJ of the last full-resolution evaluation over all the unknowns
 
 
 def project(G: F64, pts: F64) -> F64:
@@ -199,8 +200,23 @@ class PlanarRegistration:
         return RegistrationResult(
             G=state.G, S=state.gains.copy(), beta=state.beta, iterations=outcome.iterations,
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio, converged=converged, reason=reason,
-            scale=float("nan") if state.scale is None else state.scale,
+            scale=float("nan") if state.scale is None else state.scale, covariance=self._covariance(state),
         )
+
+    def _covariance(self, state: _State) -> F64 | None:
+        """`RegistrationResult.covariance`: σ² J (JᵀWJ)⁻¹_GG Jᵀ, the sl(3) block of the inverse (marginal over the
+        photometric unknowns), J = ∂vec(G)/∂x at the estimate, the update `G ← D⁻¹ G_l N⁻¹ exp(x) N D` of level 0."""
+        if state.information is None or state.scale is None:
+            return None
+        try:
+            inverse = np.linalg.inv(state.information)[self.layout.slice("G"), self.layout.slice("G")]
+        except np.linalg.LinAlgError:
+            return None
+        level = self.levels[0]
+        T = level.N @ level.D
+        T_inv = np.linalg.inv(T)
+        J = np.stack([(state.G @ T_inv @ A @ T).reshape(9) for A in SL3_GENERATORS], axis=1)
+        return state.scale**2 * (J @ inverse @ J.T)
 
     def load_current(self, cur: F32, n_levels: int) -> list[F32]:
         """The first `n_levels` levels of `cur`'s pyramid in the workspace's buffers (`CurrentPyramid.load`)."""
@@ -298,7 +314,10 @@ class _PlanarLevel:
         self.engine._fill_state(self.G_l, self.state)
         self._launch()
         engine = self.engine
-        return NormalEquations.unpack(engine._work[: engine._nacc], len(self.free), engine._sym)
+        equations = NormalEquations.unpack(engine._work[: engine._nacc], len(self.free), engine._sym)
+        if self.level.index == 0 and self._subset is None:
+            self.state.information = equations.H
+        return equations
 
     def reduce(self, equations: NormalEquations, iteration: int) -> Reduced:
         if self._subset is None:

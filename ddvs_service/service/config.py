@@ -97,9 +97,10 @@ class ControlSettings(_Strict):
     a scatter as well: the stop also needs the window full (`settle_frames` tracked frames) and the RMS deviation of
     its errors from their mean, s = √(mean_k ‖ε̄_k − ē‖²) (units of the error), below `scatter_factor` × the stop
     threshold — an estimate that moves by several thresholds from frame to frame (a biased, noisy fit: a plate over
-    a third of a 70×70 template) is not declared converged wherever its mean happens to read zero. The bound also
-    keeps an unbiased but very noisy estimate SERVOING near the goal: a larger factor trades that guarantee for a
-    stop under heavy image noise (README, Robustness)."""
+    a third of a 70×70 template) is not declared converged wherever its mean happens to read zero. An unbiased but
+    very noisy estimate stops on a longer window instead, the last `noise_frames` tracked frames: the norm of their
+    mean and its standard error s/√N both below the threshold, and their scatter at most `noise_ratio` × the one
+    the image noise predicts from the registration's covariance (`service.settling`; README, Robustness)."""
 
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
     gains: float | tuple[float, float, float, float, float, float] = 0.4
@@ -112,6 +113,8 @@ class ControlSettings(_Strict):
     converge_frames: int = Field(default=3, ge=1)
     settle_frames: int = Field(default=10, ge=1)
     scatter_factor: float = Field(default=2.0, gt=0)
+    noise_frames: int = Field(default=90, ge=2)
+    noise_ratio: float = Field(default=3.0, gt=0)
 
     def law_config(self) -> ControlConfig:
         """The law's settings; its own stop threshold is 0 because the state machine decides when to stop."""

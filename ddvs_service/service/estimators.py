@@ -38,7 +38,9 @@ F64 = NDArray[np.float64]
 @dataclass
 class Estimate:
     """One frame's geometry (reference → current pixels) and registration quality. `rho` is ρ* at the control
-    point; `tracked` is False when the registration failed or its quality is below the configured threshold."""
+    point; `tracked` is False when the registration failed or its quality is below the configured threshold.
+    `covariance`: the registration's covariance of `G`'s entries from the image noise (`RegistrationResult`), None
+    where the engine does not give it."""
 
     tracked: bool
     G: F64
@@ -49,6 +51,7 @@ class Estimate:
     inlier_ratio: float
     message: str = ""
     rho_coeffs: list[float] = field(default_factory=list)
+    covariance: F64 | None = None
 
 
 class PlanarEstimator:
@@ -162,7 +165,8 @@ class PlanarEstimator:
         else:
             message = f"{message}; registration: {result.reason}".strip("; ")
         return Estimate(tracked, result.G, np.zeros(3), 0.0, int(sum(result.iterations)),
-                        _finite(result.residual_rms), _finite(result.inlier_ratio), message)
+                        _finite(result.residual_rms), _finite(result.inlier_ratio), message,
+                        covariance=result.covariance)
 
     def _search(self, grey: NDArray[np.float32]) -> Acquisition:
         """The re-acquisition of `grey`; on the worker, from the tracker's state first when there is a last good

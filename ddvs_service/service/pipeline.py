@@ -11,9 +11,7 @@ camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOI
 
 from __future__ import annotations
 
-import math
 import time
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,6 +24,7 @@ from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.estimators import Estimate, GeneralEstimator, PlanarEstimator
 from ddvs_service.service.guard import ErrorGuard
+from ddvs_service.service.settling import SettleWindow, error_jacobian
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine
 from kernels.exclusive import GATE
 
@@ -77,14 +76,15 @@ class ServoPipeline:
         control = config.control
         self.machine = StateMachine(control.stop_threshold, control.stop_threshold * control.resume_factor,
                                     control.converge_frames,
-                                    scatter_threshold=control.stop_threshold * control.scatter_factor)
+                                    scatter_threshold=control.stop_threshold * control.scatter_factor,
+                                    max_noise_ratio=control.noise_ratio)
         self.reference: NDArray[np.float32] | None = None
         self.roi: Roi | None = None
         self.rho_coeffs: list[float] = []
         self._estimator: PlanarEstimator | GeneralEstimator | None = None
         self._law: ControlLaw | None = None
         self.guard = ErrorGuard()
-        self._recent: deque[NDArray[np.float64]] = deque(maxlen=config.control.settle_frames)
+        self._window = SettleWindow(control.settle_frames, control.noise_frames, control.stop_threshold)
         self._suspect = False  # the last frame's fit was suspect: re-acquire on the next one
         if intrinsics is not None:
             self._law = ControlLaw(config.control.law_config(), intrinsics)
@@ -108,7 +108,9 @@ class ServoPipeline:
         self.machine.resume_threshold = config.control.stop_threshold * config.control.resume_factor
         self.machine.converge_frames = config.control.converge_frames
         self.machine.scatter_threshold = config.control.stop_threshold * config.control.scatter_factor
-        self._recent = deque(self._recent, maxlen=config.control.settle_frames)
+        self.machine.max_noise_ratio = config.control.noise_ratio
+        self._window.resize(config.control.settle_frames, config.control.noise_frames)
+        self._window.threshold = config.control.stop_threshold
         if self.reference is not None and registration_changed:
             self._build_estimator(self.reference, config.registration.roi)
 
@@ -150,7 +152,7 @@ class ServoPipeline:
         self.close()
         self.reference, self.roi, self._estimator = grey, roi, estimator
         self.guard.reset()
-        self._recent.clear()
+        self._window.clear()
         self._suspect = False
         return estimator
 
@@ -217,7 +219,7 @@ class ServoPipeline:
             est.message = f"{est.message}; {suspect}".strip("; ")
         error = out.error if out is not None else ZERO6
         norm = out.error_norm if out is not None else float("nan")
-        state = self.machine.on_frame(FrameOutcome(out is not None, norm, *self._settled(out)))
+        state = self.machine.on_frame(FrameOutcome(out is not None, norm, *self._settled(out, est)))
         twist = out.twist if (out is not None and self.machine.moves) else ZERO6
         t2 = time.perf_counter()
         return StepResult(
@@ -236,20 +238,16 @@ class ServoPipeline:
         with GATE.hold():
             return self._estimator.residual(to_grey(frame))
 
-    def _settled(self, out: ControlOutput | None) -> tuple[float, float]:
-        """What the stop decision compares, over the last `settle_frames` tracked frames' control errors ε̄_k: the
-        norm of their mean ‖ē‖ and their scatter s = √(mean_k ‖ε̄_k − ē‖²), the RMS deviation from that mean (inf
-        while the window is not full); (nan, inf) for an untracked frame, which also empties the window. A resume
-        compares the frame's own norm with `resume_factor ×` the threshold, so a disturbance is answered at once."""
+    def _settled(self, out: ControlOutput | None, est: Estimate) -> tuple[float, float, float, float, float]:
+        """What the stop decision compares (`service.settling`): the short window's ‖ē‖ and scatter, the long
+        window's ‖ē‖, standard error and scatter over the one the registration's covariance predicts; an untracked
+        frame (`out` None) empties the window. A resume compares the frame's own norm with `resume_factor ×` the
+        threshold, so a disturbance is answered at once."""
         if out is None:
-            self._recent.clear()
-            return float("nan"), math.inf
-        self._recent.append(np.asarray(out.error, dtype=np.float64))
-        errors = np.asarray(self._recent)
-        mean = errors.mean(axis=0)
-        full = len(self._recent) == self._recent.maxlen
-        scatter = float(np.sqrt(np.mean(np.sum((errors - mean) ** 2, axis=1)))) if full else math.inf
-        return float(np.linalg.norm(mean)), scatter
+            return self._window.add(None)
+        law = self._law
+        assert law is not None
+        return self._window.add(out.error, est.covariance, lambda: error_jacobian(law, est.G, est.e, est.rho))
 
     def _control(self, est: Estimate) -> ControlOutput | None:
         assert self._law is not None

@@ -30,15 +30,20 @@ class TransitionError(ValueError):
 
 @dataclass
 class FrameOutcome:
-    """What one registered frame says: registration quality, the control-error norm of this frame, and the two
-    figures the stop decision compares: `settled_norm` (the pipeline's norm of the mean error over a few frames; this
-    frame's own when not given) and `scatter` (the RMS deviation of those frames' errors from their mean, same units
-    as the error; `math.inf` while too few frames back the mean, 0 when not given)."""
+    """What one registered frame says: registration quality, the control-error norm of this frame, and the figures
+    the stop decision compares (`service.settling`): `settled_norm` (the norm of the mean error over a few frames;
+    this frame's own when not given) and `scatter` (the RMS deviation of those frames' errors from their mean, same
+    units as the error; `math.inf` while too few frames back the mean, 0 when not given); over a longer window,
+    `noisy_norm` (the norm of its mean), `standard_error` (of that mean, s/√N) and `noise_ratio` (its scatter over
+    the one the image noise predicts) — not given: that clause never stops the servo."""
 
     tracked: bool
     error_norm: float
     settled_norm: float | None = None
     scatter: float = 0.0
+    noisy_norm: float = math.nan
+    standard_error: float = math.inf
+    noise_ratio: float = math.inf
 
 
 @dataclass
@@ -48,9 +53,14 @@ class StateMachine:
     `stop_threshold` is the error norm below which the servo is CONVERGED, once it stayed below for
     `converge_frames` consecutive frames (one noisy dip does not stop the arm) with the estimate's `scatter` below
     `scatter_threshold` on each (a mean below the threshold is no evidence of the pose when the estimates it averages
-    scatter by more than the threshold: issue 20's confident wrong answer); `resume_threshold` (> stop) is the norm
-    above which a CONVERGED servo resumes. LOST and CONVERGED servos go back to SERVOING by themselves, a LOST one
-    after `confirm_frames` consecutive tracked frames.
+    scatter by more than the threshold: issue 20's confident wrong answer) — or, for an estimate that image noise
+    makes scatter by more, with the long window's mean below the threshold, its standard error below the threshold
+    and its scatter at most `max_noise_ratio` × the one the noise predicts (`service.settling`); `resume_threshold`
+    (> stop) is the norm above which a CONVERGED servo resumes: the frame's own norm (a disturbance is answered at
+    once), or after a stop on the long window the norm of that window's mean (there a single frame's norm exceeds
+    it routinely; a disturbance of norm d moves the mean past it within N · resume_threshold / d frames). LOST and
+    CONVERGED servos go back to SERVOING by themselves, a LOST one after `confirm_frames` consecutive tracked
+    frames.
     """
 
     stop_threshold: float
@@ -58,9 +68,11 @@ class StateMachine:
     converge_frames: int = 1
     confirm_frames: int = 3
     scatter_threshold: float = math.inf
+    max_noise_ratio: float = 3.0
     state: ServoState = ServoState.IDLE
     _below: int = 0
     _tracked: int = 0
+    _noisy_stop: bool = False  # CONVERGED on the long window's clause
 
     def __post_init__(self) -> None:
         if not 0.0 < self.stop_threshold < self.resume_threshold:
@@ -69,6 +81,8 @@ class StateMachine:
             )
         if not self.scatter_threshold > 0.0:
             raise ValueError(f"scatter_threshold must be > 0, got {self.scatter_threshold}")
+        if not self.max_noise_ratio > 0.0:
+            raise ValueError(f"max_noise_ratio must be > 0, got {self.max_noise_ratio}")
         if self.converge_frames < 1:
             raise ValueError(f"converge_frames must be ≥ 1, got {self.converge_frames}")
         if self.confirm_frames < 1:
@@ -108,7 +122,12 @@ class StateMachine:
         if not self.servo_active:
             return self.state
         settled = outcome.error_norm if outcome.settled_norm is None else outcome.settled_norm
-        below = outcome.tracked and settled < self.stop_threshold and outcome.scatter < self.scatter_threshold
+        clean = settled < self.stop_threshold and outcome.scatter < self.scatter_threshold
+        noisy = (outcome.noisy_norm < self.stop_threshold and outcome.standard_error < self.stop_threshold
+                 and outcome.noise_ratio <= self.max_noise_ratio)
+        below = outcome.tracked and (clean or noisy)
+        noisy_mean = self._noisy_stop and math.isfinite(outcome.noisy_norm)
+        disturbance = outcome.noisy_norm if noisy_mean else outcome.error_norm
         self._below = self._below + 1 if below else 0
         self._tracked = self._tracked + 1 if outcome.tracked else 0
         if not outcome.tracked:
@@ -116,10 +135,11 @@ class StateMachine:
         elif self.state == ServoState.LOST and self._tracked < self.confirm_frames:
             pass  # re-acquired: hold still until the fit is confirmed
         elif self.state == ServoState.CONVERGED:
-            if outcome.error_norm > self.resume_threshold:
+            if disturbance > self.resume_threshold:
                 self.state = ServoState.SERVOING
         elif self._below >= self.converge_frames:
             self.state = ServoState.CONVERGED
+            self._noisy_stop = not clean
         else:
             self.state = ServoState.SERVOING
         return self.state
