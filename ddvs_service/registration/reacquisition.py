@@ -38,13 +38,14 @@ class Acquisition:
 
 class Reacquisition:
     """Re-acquisition for a tracker on `engine` (and `general`, the general model's engine, which the initialiser's
-    step 5 then uses), with the initialiser's `config`; None: off. `adopted` counts the OK results handed over."""
+    step 5 then uses), with the initialiser's `config`; None: off. `adopted` counts the OK results handed over.
+    `prepare`: build the initialiser's reference side now, with the reference, rather than in the first search."""
 
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
-                 config: GlobalInitConfig | None = None) -> None:
+                 config: GlobalInitConfig | None = None, prepare: bool = True) -> None:
         self.engine = engine
         self.initializer = None if config is None else GlobalInitializer(config, engine=engine, general=general)
-        if self.initializer is not None:  # its reference side now, with the reference, not in the first search
+        if self.initializer is not None and prepare:
             self.initializer.reference_side(engine.prepared.image, engine.prepared.roi)
         self.adopted = 0  # OK results handed to the caller
 

@@ -15,8 +15,10 @@ estimate costs a full registration budget: on the worker, never on the loop.
 
 The worker thread starts on the first call and holds the Taichi gate (`kernels.exclusive.GATE`) in the background
 while it searches, so the loop's registrations (and other servos' in the same process) go first at each of its
-checkpoints. `cancel()` drops the frame waiting and any result not yet handed over (the tracker re-acquired by
-itself); `close()` ends the thread after its current search (a new reference: the search is for the old one).
+checkpoints. The initialiser's reference side (the reference's spectra) is built by the first global search, on the
+worker, not with the reference on the caller's thread. `cancel()` drops the frame waiting and any result not yet
+handed over (the tracker re-acquired by itself); `close()` ends the thread after its current search (a new
+reference: the search is for the old one).
 Its engines (`engine`, `general`) must not be the caller's tracker's (a prepared reference may be shared, a
 workspace may not): the tracker keeps registering frames while the worker searches.
 """
@@ -51,7 +53,7 @@ class BackgroundReacquisition(Reacquisition):
 
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
                  config: GlobalInitConfig | None = None, retry: Retry | None = None) -> None:
-        super().__init__(engine, general, config)
+        super().__init__(engine, general, config, prepare=False)  # the reference side: on the worker, when needed
         self._retry = retry
         self._cond = threading.Condition()
         # the newest frame left to search, the tracker's G and where `retry` starts (None: no attempt)

@@ -48,6 +48,9 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: b
     the tracking path only (a planar robot resuming from its persisted last good estimate; `needs_initialiser`)."""
     t0 = time.monotonic()
     intrinsics = intrinsics or _fitting(WARM_UP_INTRINSICS, config.registration.roi)
+    if not initialiser:  # nor its reference side (the tracking kernels do not depend on this setting)
+        config = config.model_copy(update={"registration": config.registration.model_copy(
+            update={"global_init": False})})
     pipeline = ServoPipeline(config, intrinsics, background_reacquisition=False)  # the initialiser on this thread
     reference = synthetic_scene(intrinsics)
     pipeline.set_reference(reference, G0=None if initialiser else np.eye(3))
