@@ -287,13 +287,14 @@ class RobotServo:
             "publish": (t_done - t_publish) * 1e3,
             "total": (t_done - arrival.t) * 1e3,
         }
-        self._unfinished = _Served(step, msg.header, latency, stale, image)
+        self._unfinished = _Served(step, msg.header, latency, stale, image, self._counters_now())
 
     def finish_frame(self) -> None:
         """Publish what reports on the last frame served (`serve_frame`), if not done yet."""
         served, self._unfinished = self._unfinished, None
         if served is not None:
-            self._publish_status(served.step, served.header.stamp.to_ns(), served.latency, served.stale)
+            self._publish_status(served.step, served.header.stamp.to_ns(), served.latency, served.stale,
+                                 Counters(**served.counters))
             self._residual.offer(served.header, lambda: self.pipeline.residual(served.image))
 
     def _reject_frame(self, message: str) -> None:
@@ -423,7 +424,8 @@ class RobotServo:
         self._pub["servo_twist"].put(encode_twist_stamped(msg))
         self._zero_sent = not np.any(twist)
 
-    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool) -> None:
+    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool,
+                        counters: Counters) -> None:
         """The frame's `Status`: every frame with `status_every_frame`, else on a state change or a stale twist."""
         previous = self._last_status.state if self._last_status else None
         changed = previous != step.state.value
@@ -432,7 +434,7 @@ class RobotServo:
                 robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
                 error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
                 residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
-                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self.current_counters(),
+                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=counters,
                 message=step.message[:500],
             ))
         if changed or self.pipeline.rho_coeffs != self._persisted_rho:
@@ -463,7 +465,11 @@ class RobotServo:
 
     def current_counters(self) -> Counters:
         """The counters of `Status.counters` now."""
-        return Counters(dropped=self.inbox.frames_superseded, **self.counters)
+        return Counters(**self._counters_now())
+
+    def _counters_now(self) -> dict[str, int]:
+        """The counters of `Status.counters` now, as a plain dict (cheap: taken with every frame served)."""
+        return {"dropped": self.inbox.frames_superseded, **self.counters}
 
     def _next_seq(self) -> int:
         self._seq += 1
@@ -479,6 +485,7 @@ class _Served:
     latency: dict[str, float]
     stale: bool
     image: NDArray
+    counters: dict[str, int]  # as the frame was served: the status reports them as of its frame
 
 
 @dataclass(frozen=True)
