@@ -253,7 +253,7 @@ def search_after_jump(camera: Camera, answers: list[tuple[float, bool]], message
     moved = next(t for t, moving in answers if moving and t > t_jump + 0.2)
     gaps = np.diff([t_jump, *[t for t, _ in answers if t_jump < t <= moved]])
     return {"longest_pause_s": round(float(gaps.max()), 3), "reacquired_s": round(moved - t_jump, 3),
-            "initialiser": any(m.startswith("global initialisation: ok") for m in messages[n_messages:])}
+            "initialiser": any("global initialisation: ok" in m for m in messages[n_messages:])}
 
 
 def phases(config: Path, runs: int) -> list[dict]:
