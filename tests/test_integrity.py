@@ -255,7 +255,7 @@ def test_a_noisy_unbiased_estimate_converges_on_the_long_window() -> None:
     cam = Intrinsics(**{k: CAMERA[k] for k in ("fx", "fy", "cx", "cy")}, width=320, height=240)
     A = error_jacobian(ControlLaw(ServiceConfig().control.law_config(), cam), np.eye(3), np.zeros(3), 0.0)
     rng = np.random.default_rng(4)
-    B = rng.normal(size=(9, 9))
+    B = rng.normal(size=(12, 12))
     covariance = B @ B.T
     covariance *= 6e-3**2 / np.trace(A @ covariance @ A.T)  # the predicted scatter: 6e-3
     errors = rng.multivariate_normal(np.zeros(6), A @ covariance @ A.T, size=150)
@@ -271,7 +271,7 @@ def test_a_noisy_unbiased_estimate_converges_on_the_long_window() -> None:
             states.append(sm.on_frame(FrameOutcome(True, float(np.linalg.norm(error)), *figures)))
         assert min(scatters) > 2e-3
         if converges:
-            assert states.index(ServoState.CONVERGED) in range(91, 100), states
+            assert states.index(ServoState.CONVERGED) >= 91, states  # the long window full, then 3 frames
         else:
             assert ServoState.CONVERGED not in states
 
@@ -303,6 +303,45 @@ def test_the_registration_covariance_predicts_the_scatter_of_its_estimate(frames
     E = np.asarray(errors)
     measured = np.sqrt(np.mean(np.sum((E - E.mean(axis=0)) ** 2, axis=1)))
     assert measured > 2e-3  # noisy: above the short window's scatter bound
+    assert measured / np.sqrt(np.mean(predicted)) == pytest.approx(1.0, abs=0.25)
+
+
+@pytest.mark.slow
+def test_the_general_registration_covariance_predicts_the_scatter_of_its_estimate() -> None:
+    """The same for the general model (eq. (2): the saddle, 200×150 ROI, ρ* estimated once 5 cm / 3° from the
+    reference, then held): the covariance of [vec(G), e] through the decoupled law's Jacobian predicts the control
+    error's scatter over frames with independent noise σ 8 within 25 %."""
+    from ddvs_service.camera import Intrinsics
+    from ddvs_service.control.law import ControlLaw
+    from ddvs_service.lie import pose, so3_exp
+    from ddvs_service.registration.general_register import register_general
+    from ddvs_service.service.config import ServiceConfig
+    from ddvs_service.service.settling import error_jacobian
+    from sim.freeflyer import render_camera
+    from sim.surfaces import paper_saddle
+    from sim.textures import load_texture
+
+    cam = Intrinsics.centred(500.0, 550, 418)
+    roi = (175, 134, 200, 150)
+    saddle, texture = paper_saddle(), load_texture("graf")
+    reference = np.clip(np.rint(render_camera(saddle, texture, cam, np.eye(4))), 0, 255)
+    current = np.clip(np.rint(render_camera(saddle, texture, cam, pose(so3_exp([0.0, 0.05, 0.0]), (-0.05, 0, 0)))),
+                      0, 255)
+    first = register_general(reference, current, roi)
+    assert first.converged and first.parallax_px > 0.2, first.reason
+    law = ControlLaw(ServiceConfig().control.law_config(), cam)
+    rng = np.random.default_rng(1)
+    errors, predicted = [], []
+    for _ in range(20):
+        noisy = np.clip(np.rint(current + rng.normal(scale=8.0, size=current.shape)), 0, 255)
+        result = register_general(reference, noisy, roi, G0=first.G, e0=first.e, rho0=first.rho_coeffs)
+        assert result.converged and result.covariance is not None, result.reason
+        rho = result.rho_at((cam.cx, cam.cy))
+        A = error_jacobian(law, result.G, result.e, rho)
+        errors.append(law.error(result.G, result.e, rho))
+        predicted.append(np.trace(A @ result.covariance @ A.T))
+    E = np.asarray(errors)
+    measured = np.sqrt(np.mean(np.sum((E - E.mean(axis=0)) ** 2, axis=1)))
     assert measured / np.sqrt(np.mean(predicted)) == pytest.approx(1.0, abs=0.25)
 
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ddvs_service.lie import sl3_exp
+from ddvs_service.lie import SL3_GENERATORS, sl3_exp
 from ddvs_service.registration.config import ROBUST_CODES
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.general_config import (
@@ -86,6 +86,7 @@ class _State:
     inlier_ratio: float = 0.0
     cost: float = float("inf")
     information: F64 | None = None  # on ρ*, from the first finest-level evaluation of a tracked frame
+    normal: tuple[ParamLayout, F64, F64] | None = None  # the last finest-level step's layout, T and TᵀHT (`reduce`)
     scale_cap: float = float("inf")  # the largest σ the weights and the inlier count use (`registration.integrity`)
 
 
@@ -381,7 +382,29 @@ class GeneralRegistration:
             rho_information=info, parallax_px=_rms(parallax), iterations=iterations,
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio,
             scale=float("nan") if state.scale is None else state.scale, converged=converged, reason=reason, flags=flags,
+            covariance=self._covariance(state),
         )
+
+    def _covariance(self, state: _State) -> F64 | None:
+        """`RegistrationResult.covariance` over [vec(G), e]: σ² J T (TᵀHT)⁻¹ Tᵀ Jᵀ from the last finest-level step
+        (T: the unknowns it solved, `reduce`), J = ∂[vec(G), e]/∂[x_G, δe] of the update `_apply` at level 0."""
+        if state.normal is None or state.scale is None:
+            return None
+        layout, T, reduced = state.normal
+        try:
+            full = T @ np.linalg.inv(reduced) @ T.T
+        except np.linalg.LinAlgError:
+            return None
+        ge = layout.indices("G", "e")
+        level = self.levels[0]
+        M = np.linalg.inv(level.N @ level.D)
+        J = np.zeros((12, 11))
+        for i, A in enumerate(SL3_GENERATORS):
+            dM = M @ A @ np.linalg.inv(M)  # D⁻¹ N⁻¹ A N D
+            J[:9, i] = (dM @ state.G).reshape(9)
+            J[9:, i] = dM @ state.e
+        J[9:, 8:] = M
+        return state.scale**2 * (J @ full[np.ix_(ge, ge)] @ J.T)
 
     def _failed(
         self, state: _State, reason: str, flags: list[str], iterations: list[int] | None = None
@@ -435,7 +458,10 @@ class _GeneralLevel:
             E = np.zeros((len(g), 2))
             E[e] = basis
             T = np.hstack([T[:, : e.start], E, T[:, e.stop :]])
-        return Reduced(T.T @ H @ T, T.T @ g, lambda x: T @ x)
+        reduced = T.T @ H @ T
+        if self.level.index == 0:
+            self.state.normal = (self.layout, T, reduced)
+        return Reduced(reduced, T.T @ g, lambda x: T @ x)
 
     def trial(self, delta: F64) -> tuple[_State, float]:
         engine, state = self.engine, self.state

@@ -205,7 +205,8 @@ class PlanarRegistration:
 
     def _covariance(self, state: _State) -> F64 | None:
         """`RegistrationResult.covariance`: σ² J (JᵀWJ)⁻¹_GG Jᵀ, the sl(3) block of the inverse (marginal over the
-        photometric unknowns), J = ∂vec(G)/∂x at the estimate, the update `G ← D⁻¹ G_l N⁻¹ exp(x) N D` of level 0."""
+        photometric unknowns), J = ∂[vec(G), e]/∂x at the estimate, the update `G ← D⁻¹ G_l N⁻¹ exp(x) N D` of level
+        0."""
         if state.information is None or state.scale is None:
             return None
         try:
@@ -215,7 +216,8 @@ class PlanarRegistration:
         level = self.levels[0]
         T = level.N @ level.D
         T_inv = np.linalg.inv(T)
-        J = np.stack([(state.G @ T_inv @ A @ T).reshape(9) for A in SL3_GENERATORS], axis=1)
+        J = np.zeros((12, 8))  # e ≡ 0 is not estimated: its rows stay zero
+        J[:9] = np.stack([(state.G @ T_inv @ A @ T).reshape(9) for A in SL3_GENERATORS], axis=1)
         return state.scale**2 * (J @ inverse @ J.T)
 
     def load_current(self, cur: F32, n_levels: int) -> list[F32]:

@@ -21,10 +21,11 @@ class RegistrationResult:
       pixels at the last evaluation (grey levels).
     - `inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ; `scale`: the robust scale σ (grey levels).
     - `converged` and `reason`: why the iteration stopped.
-    - `covariance`: 9×9, the Gauss-Newton covariance of `G`'s entries (row-major; rank 8, det G = 1) that the image
-      noise alone causes, σ² J (JᵀWJ)⁻¹ Jᵀ with σ = `scale`, `JᵀWJ` the last full-resolution evaluation's over all the
-      unknowns (marginal over the photometric ones) and J the map from the engine's sl(3) coordinates to `G`'s
-      entries; None where not evaluated (the general model, a solve that did not end at full resolution).
+    - `covariance`: 12×12, the Gauss-Newton covariance of [vec(G) (row-major), e] (the general model's epipole;
+      the planar model's rows and columns of `e` are zero; det G = 1 removes one more direction) that the image
+      noise alone causes, σ² J (JᵀWJ)⁻¹ Jᵀ with σ = `scale`, `JᵀWJ` the last full-resolution step's over the
+      unknowns it solved (marginal over the photometric ones and ρ*) and J the map from the engine's coordinates to
+      these entries; None where not evaluated (a solve that did not end at full resolution).
     """
 
     G: NDArray[np.float64]

@@ -39,8 +39,8 @@ F64 = NDArray[np.float64]
 class Estimate:
     """One frame's geometry (reference → current pixels) and registration quality. `rho` is ρ* at the control
     point; `tracked` is False when the registration failed or its quality is below the configured threshold.
-    `covariance`: the registration's covariance of `G`'s entries from the image noise (`RegistrationResult`), None
-    where the engine does not give it."""
+    `covariance`: the registration's covariance of `G`'s and `e`'s entries from the image noise
+    (`RegistrationResult`), None where the engine does not give it."""
 
     tracked: bool
     G: F64
@@ -269,7 +269,7 @@ class GeneralEstimator:
         return Estimate(
             tracked, result.G, result.e, float(result.rho_at(control_px)) if tracked else 0.0,
             int(sum(result.iterations)), _finite(result.residual_rms), _finite(result.inlier_ratio), message,
-            [] if coeffs is None else [float(c) for c in coeffs],
+            [] if coeffs is None else [float(c) for c in coeffs], covariance=result.covariance,
         )
 
 

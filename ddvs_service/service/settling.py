@@ -8,7 +8,7 @@ Two windows of the same frames (an untracked frame empties both):
   (noise σ 4 on a scene dimmed 3×, JPEG: s ≈ 6–7e-3): the norm of its mean, the standard error of that mean s/√N
   (the mean is known to within it when the frames' errors are independent draws about it) and the ratio of s to the
   scatter the image noise alone predicts, p = √tr(A Σ̄ Aᵀ), Σ̄ the window's mean of the registration's Gauss-Newton
-  covariances of `G` (`RegistrationResult.covariance`) and A the law's Jacobian at the newest frame
+  covariances of `G` and `e` (`RegistrationResult.covariance`) and A the law's Jacobian at the newest frame
   (`error_jacobian`). The stop needs all three: the mean below the threshold, known to within it, and a scatter
   the noise explains — a fit that wanders (a biased estimate under an occluder, a servo that oscillates) scatters
   more than its noise predicts, and over a longer window more than over a short one, so its mean is not known to
@@ -30,15 +30,16 @@ from ddvs_service.control.law import ControlLaw
 
 F64 = NDArray[np.float64]
 NOT_SETTLED = (float("nan"), math.inf, float("nan"), math.inf, math.inf)
-STEP = 1e-6  # forward-difference step on `G`'s entries (the third row's: per pixel, against a denominator of ~1)
+STEP = 1e-6  # forward-difference step on `G`'s and `e`'s entries (the third row's: against a denominator of ~1)
 
 
 def error_jacobian(law: ControlLaw, G: F64, e: F64, rho: float) -> F64:
-    """A = ∂ε̄/∂vec(G) (6×9, `G`'s entries row-major) of the law's error at (`G`, `e`, `ρ*`), by forward
-    differences."""
+    """A = ∂ε̄/∂[vec(G), e] (6×12, `G`'s entries row-major, then the epipole's) of the law's error at (`G`, `e`,
+    `ρ*`), by forward differences."""
     base = law.error(G, e, rho)
-    steps = np.eye(9) * STEP
-    return np.stack([(law.error(G + d.reshape(3, 3), e, rho) - base) / STEP for d in steps], axis=1)
+    x = np.concatenate([np.asarray(G, dtype=np.float64).reshape(9), np.asarray(e, dtype=np.float64)])
+    steps = np.eye(12) * STEP
+    return np.stack([(law.error((x + d)[:9].reshape(3, 3), (x + d)[9:], rho) - base) / STEP for d in steps], axis=1)
 
 
 class SettleWindow:
@@ -64,7 +65,7 @@ class SettleWindow:
 
     def add(self, error: F64 | None, covariance: F64 | None = None,
             jacobian: Callable[[], F64] | None = None) -> tuple[float, float, float, float, float]:
-        """Add a tracked frame's control error and its registration's covariance of `G`'s entries (None: unknown;
+        """Add a tracked frame's control error and its registration's covariance of [vec(G), e] (None: unknown;
         `RegistrationResult.covariance`), or None for an untracked frame (which empties the window). `jacobian`:
         the newest frame's `error_jacobian`, used for the whole long window (its mean below the threshold: the
         camera is near the goal, where A changes little). Returns the figures `StateMachine` compares: (‖ē‖, s) of
