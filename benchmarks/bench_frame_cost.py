@@ -5,11 +5,10 @@ closed-loop plant in lockstep: the plant (same process, a Zenoh session of its o
 renders the "boat" poster from its pose (`bench_fleet`'s scene and random start), publishes the frame, and waits for
 the twist before integrating it and rendering the next, so the frames are the same on every run once the servo moves
 (`servoed`). The loop thread's work per frame is what `ServeProcess` runs for a frame: the robot's inputs,
-`serve_frame` (decode, registration, control, twist out) and `finish_frame` (status out, residual offer; in a
-process serving several robots it waits until no other robot's frame waits: `finish_wall_ms`). Measured per frame
-after a warm-up: the loop thread's CPU time (`time.thread_time`: the Python side; it waits while a kernel runs), the
+`handle_frame` (decode, registration, control, twist and status out, residual offer). Measured per frame after a
+warm-up: the loop thread's CPU time (`time.thread_time`: the Python side; it waits while a kernel runs), the
 process's (`time.process_time`: Taichi's worker threads, which run the kernels' pixel loops, and the Zenoh threads
-besides) and wall time, the Taichi launches (calls of `kernels.launch.Prepared`), and the stages `serve_frame`
+besides) and wall time, the Taichi launches (calls of `kernels.launch.Prepared`), and the stages `handle_frame`
 reports in its status (`latency_ms`). `--profile OUT`: the measured frames again under cProfile (its overhead
 inflates the totals; the shares are what it is for). `--estimates OUT`: every frame's `G` and twist as JSON, to
 compare two revisions (`--compare A B` prints the largest differences, from the first servoed frame on: `servoed`).
@@ -139,9 +138,7 @@ def _serve(robot: RobotServo, service: Any, plant: Any, frames: int, warm_up: in
         robot.handle_inputs()
         arrival = inbox.take_frame()
         assert arrival is not None
-        robot.serve_frame(arrival)
-        served = time.perf_counter()
-        robot.finish_frame()
+        robot.handle_frame(arrival)
         if profiler is not None and measured:
             profiler.disable()
         cpu, proc, wall = time.thread_time() - cpu0, time.process_time() - proc0, time.perf_counter() - wall0
@@ -150,7 +147,6 @@ def _serve(robot: RobotServo, service: Any, plant: Any, frames: int, warm_up: in
         status = robot._last_status
         assert status is not None
         rows.append({"measured": measured, "cpu_ms": cpu * 1e3, "process_cpu_ms": proc * 1e3, "wall_ms": wall * 1e3,
-                     "finish_wall_ms": (wall0 + wall - served) * 1e3,
                      "launches": launches.count - n0, "iterations": status.iterations, "state": status.state,
                      "stages_ms": status.latency_ms.model_dump(), "G": robot.pipeline.G.reshape(-1).tolist(),
                      "twist": twist.tolist()})
@@ -174,9 +170,7 @@ def summary(result: dict[str, Any]) -> dict[str, Any]:
                                                                             "publish")}
     return {"frames": len(rows), "cpu_ms": stats([r["cpu_ms"] for r in rows]),
             "process_cpu_ms": stats([r["process_cpu_ms"] for r in rows]),
-            "wall_ms": stats([r["wall_ms"] for r in rows]),
-            "finish_wall_ms": stats([r["finish_wall_ms"] for r in rows]),
-            "launches": stats([r["launches"] for r in rows]),
+            "wall_ms": stats([r["wall_ms"] for r in rows]), "launches": stats([r["launches"] for r in rows]),
             "iterations": stats([r["iterations"] for r in rows]), "stages_ms": stages,
             "states": sorted({r["state"] for r in rows}), "final_offset_mm": round(result["final_offset_mm"], 3),
             "load_average": [round(x, 2) for x in os.getloadavg()]}

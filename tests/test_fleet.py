@@ -20,26 +20,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 from conftest import free_port
 from test_service_node import Operator, Service, converge, scene, service_config, shifted
 
 from clients.ctl import EXIT_OK, EXIT_REFUSED, add_arguments, command_from_args, command_key
-from ddvs_service.protocol import (
-    Command,
-    Keys,
-    Reply,
-    SessionConfig,
-    dump,
-    encode_image,
-    image_from_array,
-    open_session,
-)
+from ddvs_service.protocol import Command, Keys, Reply, dump, encode_image, image_from_array
 from ddvs_service.protocol.control import process_command_key
 from ddvs_service.service.fleet_config import FleetChanges, FleetConfig, read_file
 from ddvs_service.service.inbox import Inbox, Wakeup
 from ddvs_service.service.persistence import BackgroundWriter, StateStore
-from ddvs_service.service.process import ServeProcess
 from ddvs_service.service.robot import RobotServo
 from ddvs_service.service.scheduler import Scheduler
 
@@ -211,62 +200,6 @@ def test_ctl_process_actions_map_to_process_commands(tmp_path: Path) -> None:
     assert command_key(keys, listing) == "lab/serve/a/command"  # a process is named after its first robot
     assert command_key(keys, listing, "cell") == "lab/serve/cell/command"
     assert command_key(keys, Command(op="start")) == "lab/a/servo/command"
-
-
-def test_frames_waiting_together_get_their_twists_before_the_statuses(tmp_path: Path) -> None:
-    """Frames of two robots wait together: the loop serves one per turn, and the first robot's status is held back
-    while the second robot's frame waits, then goes out with the second's once its twist is out."""
-    port = free_port()
-    base = service_config(port, tmp_path / "state")
-    served = ServeProcess(FleetConfig(base, [{"robot": "a"}, {"robot": "b"}]), warmup=False)
-    session = open_session(base.zenoh)
-    camera = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
-    out: list[str] = []
-    subs = [camera.declare_subscriber(f"ddvs/*/servo/{what}", lambda s: out.append(str(s.key_expr)))
-            for what in ("twist", "status")]
-    publishers = [camera.declare_publisher(robot.keys.key("camera_image"),
-                                           congestion_control=zenoh.CongestionControl.BLOCK)
-                  for robot in served.robots.values()]
-
-    def received(n: int) -> list[str]:
-        deadline = time.monotonic() + 10.0
-        while len(out) < n:
-            assert time.monotonic() < deadline, f"only {out} arrived"
-            time.sleep(0.01)
-        time.sleep(0.3)  # nothing more is on its way
-        return list(out)
-
-    try:
-        for robot in served.robots.values():
-            robot.open(session)
-            assert robot.handle_command(dump(Command(op="set_reference", source="next_frame"))).ok
-        deadline = time.monotonic() + 20.0
-        while not all(pub.matching_status.matching for pub in publishers):  # a put before then would be dropped
-            assert time.monotonic() < deadline, "the camera's session did not meet the process's"
-            time.sleep(0.02)
-        time.sleep(0.3)
-        out.clear()
-        frame = encode_image(image_from_array(scene(), "mono8"))
-        for pub in publishers:
-            pub.put(frame)
-        while any(robot.inbox.waiting_since is None for robot in served.robots.values()):
-            assert time.monotonic() < deadline, "the frames did not reach the inboxes"
-            time.sleep(0.01)
-        served._turn()
-        first = received(1)
-        assert len(first) == 1 and first[0].endswith("/servo/twist"), first  # the other frame waits: no status
-        second = "b" if first[0] == "ddvs/a/servo/twist" else "a"
-        served._turn()
-        assert sorted(received(4)[1:]) == ["ddvs/a/servo/status", "ddvs/b/servo/status", f"ddvs/{second}/servo/twist"]
-    finally:
-        for pub in publishers:
-            pub.undeclare()
-        for sub in subs:
-            sub.undeclare()
-        for robot in served.robots.values():
-            robot.close("test done")
-        camera.close()
-        session.close()
 
 
 # --- one process, several robots --------------------------------------------------------------------------------

@@ -4,11 +4,9 @@ All robots share the process's Taichi runtime and its compiled kernels, and one 
 compiles on the thread that runs it). Each turn the loop runs: the oldest pending process command
 (`<prefix>/serve/<process>/command`: `add_robot`, `remove_robot`, `list_robots`), each robot's oldest pending
 command and newest camera info, one frame — the newest of the robot that has waited longest for a turn
-(`scheduler.Scheduler`: a robot's frame waits behind at most one frame of each other robot) up to its twist, the
-statuses of the frames served once no frame waits (a frame of several robots arriving together waits for the others'
-registrations and twists, not for their statuses; a robot's status goes out at the latest before its next frame),
-then every robot's watchdog. Between turns it sleeps until something arrives for the process or any robot, or a
-watchdog is due. A robot's bad frame or command is answered for that robot alone; the others go on.
+(`scheduler.Scheduler`: a robot's frame waits behind at most one frame of each other robot) — then every robot's
+watchdog. Between turns it sleeps until something arrives for the process or any robot, or a watchdog is due.
+A robot's bad frame or command is answered for that robot alone; the others go on.
 
 `add_robot` builds the robot (its persisted state resumed from `state_dir/robots/<robot>`, or deleted first with
 `fresh`), compiles its kernels on this thread when its registration settings are new to the process (the other
@@ -138,10 +136,7 @@ class ServeProcess:
             arrival = robot.inbox.take_frame()
             if arrival is not None:
                 self.scheduler.take(name, arrival.turn, self.wakeup.turns)
-                robot.serve_frame(arrival)
-        if not any(robot.inbox.waiting_since is not None for robot in self.robots.values()):
-            for robot in self.robots.values():
-                robot.finish_frame()  # statuses once every waiting frame's twist is out
+                robot.handle_frame(arrival)
         for robot in self.robots.values():
             robot.watchdog()
 

@@ -3,19 +3,17 @@
 `RobotServo` holds everything that belongs to one robot; the process (`service.process`) owns the Zenoh session and
 the loop thread and calls in: `open(session)` declares the robot's subscriptions, queryable, publishers and
 liveliness token, `handle_inputs()` runs its oldest pending command and adopts its newest camera info,
-`serve_frame(arrival)` serves one frame up to its twist and `finish_frame()` publishes its status (`handle_frame`:
-both), `watchdog()` zeroes a standing twist when no frame *arrived* within `frame_timeout_s` (a slow frame while
-frames keep arriving is no timeout), `close(reason)` publishes a zero twist and undeclares everything. Zenoh
-callbacks only hand samples to the robot's `Inbox` and wake the loop.
+`handle_frame(arrival)` serves one frame, `watchdog()` zeroes a standing twist when no frame *arrived* within
+`frame_timeout_s` (a slow frame while frames keep arriving is no timeout), `close(reason)` publishes a zero twist
+and undeclares everything. Zenoh callbacks only hand samples to the robot's `Inbox` and wake the loop.
 
 Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
-frame's stamp, camera frame), then `servo/status` (in a process serving several robots, once no other robot's frame
-waits). Bad frames are rejected and counted; the robot keeps running, and so do the other robots of the process.
-Never stale: the twist of frame k is withheld (and counted `stale`) when frames k+1 and k+2 arrived before it could
-go out — a newer frame's twist is about to follow. Frames in IDLE (no reference, none pending) are not answered.
-State (reference, servo state, intrinsics, run-time configuration changes) is persisted atomically in the robot's
-own state directory by a background writer (`BackgroundWriter`: no fsync on the loop thread); a restarted robot
-resumes from it.
+frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the robot keeps running, and
+so do the other robots of the process. Never stale: the twist of frame k is withheld (and counted `stale`) when
+frames k+1 and k+2 arrived before it could go out — a newer frame's twist is about to follow. Frames in IDLE (no
+reference, none pending) are not answered. State (reference, servo state, intrinsics, run-time configuration
+changes) is persisted atomically in the robot's own state directory by a background writer (`BackgroundWriter`: no
+fsync on the loop thread); a restarted robot resumes from it.
 """
 
 from __future__ import annotations
@@ -91,7 +89,6 @@ class RobotServo:
         self._persisted_rho: list[float] = []
         self.inbox = Inbox(wakeup=wakeup)
         self._zenoh: _Declared | None = None
-        self._unfinished: _Served | None = None
         self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float], NDArray | None] | None \
             = None
         self.writer = BackgroundWriter(self.store)
@@ -195,7 +192,6 @@ class RobotServo:
         background re-acquisition ended."""
         try:
             if self._zenoh is not None:
-                self.finish_frame()
                 self._publish_twist(ZERO6, Time.now())
                 self._publish_state(f"stopped: {reason}")
                 self._zenoh.token.undeclare()
@@ -240,17 +236,8 @@ class RobotServo:
             log.warning("camera info rejected", extra=fields(error=str(exc)))
 
     def handle_frame(self, arrival: Arrival[zenoh.Sample]) -> None:
-        """Serve one frame taken from this robot's inbox, status included: `serve_frame`, then `finish_frame`."""
-        self.serve_frame(arrival)
-        self.finish_frame()
-
-    def serve_frame(self, arrival: Arrival[zenoh.Sample]) -> None:
-        """Serve one frame taken from this robot's inbox up to its twist, with the newest camera info that arrived
-        before it (a camera's info and image come on two topics, possibly over two links, in either order). What
-        only reports on the frame — its status, the state persisted and published on a change, the residual offer —
-        waits for `finish_frame`, which the process calls once no other robot's frame waits (their twists go out
-        first), and which runs at the latest before this robot's next frame or command."""
-        self.finish_frame()
+        """Serve one frame taken from this robot's inbox, with the newest camera info that arrived before it (a
+        camera's info and image come on two topics, possibly over two links, in either order)."""
         self._handle_info(self.inbox.take_info())
         if self.pipeline.machine.state == ServoState.IDLE and self._pending_reference is None:
             self.counters["idle"] += 1  # nothing to servo to: no twist, no status
@@ -287,15 +274,8 @@ class RobotServo:
             "publish": (t_done - t_publish) * 1e3,
             "total": (t_done - arrival.t) * 1e3,
         }
-        self._unfinished = _Served(step, msg.header, latency, stale, image, self._counters_now())
-
-    def finish_frame(self) -> None:
-        """Publish what reports on the last frame served (`serve_frame`), if not done yet."""
-        served, self._unfinished = self._unfinished, None
-        if served is not None:
-            self._publish_status(served.step, served.header.stamp.to_ns(), served.latency, served.stale,
-                                 Counters(**served.counters))
-            self._residual.offer(served.header, lambda: self.pipeline.residual(served.image))
+        self._publish_status(step, msg.header.stamp.to_ns(), latency, stale)
+        self._residual.offer(msg.header, lambda: self.pipeline.residual(image))
 
     def _reject_frame(self, message: str) -> None:
         self.counters["rejected"] += 1
@@ -332,7 +312,6 @@ class RobotServo:
     def _handle_query(self, query: zenoh.Query | None) -> None:
         if query is None:
             return
-        self.finish_frame()  # a command sees the last frame's status and state
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             reply = self.handle_command(payload)
@@ -424,8 +403,7 @@ class RobotServo:
         self._pub["servo_twist"].put(encode_twist_stamped(msg))
         self._zero_sent = not np.any(twist)
 
-    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool,
-                        counters: Counters) -> None:
+    def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool) -> None:
         """The frame's `Status`: every frame with `status_every_frame`, else on a state change or a stale twist."""
         previous = self._last_status.state if self._last_status else None
         changed = previous != step.state.value
@@ -434,7 +412,7 @@ class RobotServo:
                 robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
                 error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
                 residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
-                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=counters,
+                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self.current_counters(),
                 message=step.message[:500],
             ))
         if changed or self.pipeline.rho_coeffs != self._persisted_rho:
@@ -465,27 +443,11 @@ class RobotServo:
 
     def current_counters(self) -> Counters:
         """The counters of `Status.counters` now."""
-        return Counters(**self._counters_now())
-
-    def _counters_now(self) -> dict[str, int]:
-        """The counters of `Status.counters` now, as a plain dict (cheap: taken with every frame served)."""
-        return {"dropped": self.inbox.frames_superseded, **self.counters}
+        return Counters(dropped=self.inbox.frames_superseded, **self.counters)
 
     def _next_seq(self) -> int:
         self._seq += 1
         return self._seq
-
-
-@dataclass(frozen=True)
-class _Served:
-    """A frame served up to its twist whose status is not out yet (`RobotServo.finish_frame`)."""
-
-    step: StepResult
-    header: Header
-    latency: dict[str, float]
-    stale: bool
-    image: NDArray
-    counters: dict[str, int]  # as the frame was served: the status reports them as of its frame
 
 
 @dataclass(frozen=True)
