@@ -4,10 +4,10 @@ Two windows of the same frames (an untracked frame empties both):
 - the short one, the last `settle_frames` (10): the norm of the mean error ‖ē‖ and the scatter of the errors about
   it, s = √(mean_k ‖ε̄_k − ē‖²) (inf while the window is not full). A clean estimate stops on it: ‖ē‖ below the
   stop threshold and s below `scatter_factor` × it.
-- the long one, the last `noise_frames` (90), for an estimate that image noise makes scatter by more than that
-  (noise σ 4 on a scene dimmed 3×, JPEG: s ≈ 6–7e-3): the norm of its mean, the standard error of that mean s/√N
-  (the mean is known to within it when the frames' errors are independent draws about it) and the ratio of s to the
-  scatter the image noise alone predicts, p = √tr(A Σ̄ Aᵀ), Σ̄ the window's mean of the registration's Gauss-Newton
+- the long one, the last `noise_frames` (90), for an estimate that image noise makes scatter by more than that (a
+  scene dimmed 3× under noise and JPEG: README, Robustness): the norm of its mean, the standard error of that mean
+  s/√N (the mean is known to within it when the frames' errors are independent draws about it) and the ratio of s
+  to the scatter the image noise alone predicts, p = √tr(A Σ̄ Aᵀ), Σ̄ the window's mean of the registration's Gauss-Newton
   covariances of `G` and `e` (`RegistrationResult.covariance`) and A the law's Jacobian at the newest frame
   (`error_jacobian`). The stop needs all three: the mean below the threshold, known to within it, and a scatter
   the noise explains — a fit that wanders (a biased estimate under an occluder, a servo that oscillates) scatters
