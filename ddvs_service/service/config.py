@@ -131,7 +131,8 @@ class ControlSettings(_Strict):
 
 class ServiceConfig(_Strict):
     """Everything `ddvs serve` needs. Safety: `frame_timeout_s` without a frame → zero twist; LOST when the
-    registration fails or its inlier ratio is below `registration.min_inlier_ratio`."""
+    registration fails or its inlier ratio is below `registration.min_inlier_ratio` (a tracked frame: the tracker's
+    lower floor while an occluder slides over the template, `registration.integrity.Integrity.inlier_floor`)."""
 
     prefix: str = "ddvs"
     robot: str = "robot0"
