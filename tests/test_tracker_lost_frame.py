@@ -5,7 +5,7 @@ within reach is still recovered within the frame by the retry over the pyramid. 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pytest
@@ -28,32 +28,29 @@ from sim.textures import TEXTURES, load_texture
 CAM = Intrinsics.centred(420.0, 320, 240)
 ROI = (90, 50, 140, 140)  # the shipped template size, on the image centre
 CONFIG = RegistrationConfig(levels=3, gain_grid=(3, 3), robust="tukey")  # the shipped service's engine settings
+R = TypeVar("R", bound=RegistrationResult)
 
 
-class CountingPlanar(PlanarRegistration):
-    """The planar engine, recording the iterations per level of every registration it runs."""
+class Counting:
+    """Mixed into an engine: records the iterations per level of every registration it runs (`runs`)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.runs: list[list[int]] = []
 
+    def counted(self, result: R) -> R:
+        self.runs.append(list(result.iterations))
+        return result
+
+
+class CountingPlanar(Counting, PlanarRegistration):
     def run(self, *args: Any, **kwargs: Any) -> RegistrationResult:
-        result = super().run(*args, **kwargs)
-        self.runs.append(list(result.iterations))
-        return result
+        return self.counted(super().run(*args, **kwargs))
 
 
-class CountingGeneral(GeneralRegistration):
-    """The general engine, recording the iterations per level of every tracked registration it runs."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.runs: list[list[int]] = []
-
+class CountingGeneral(Counting, GeneralRegistration):
     def track(self, *args: Any, **kwargs: Any) -> GeneralResult:
-        result = super().track(*args, **kwargs)
-        self.runs.append(list(result.iterations))
-        return result
+        return self.counted(super().track(*args, **kwargs))
 
 
 @pytest.fixture(scope="module")
