@@ -21,7 +21,12 @@ after the service's warm-up (`service.startup`: every kernel compiled); the load
 figures.
 
     .venv/bin/python benchmarks/bench_reacquisition.py [--rois 70 140 200] [--turn-deg 40] [--timeout 20] [--runs 1]
-        [--modes background inline] [--holds 7]
+        [--modes background inline] [--holds 7] [--failing 15]
+
+`--failing N`: the registration of the frame that discovers the loss alone (`Tracker.track` of the turned view with
+the service's engine settings: the warm attempt and the retry over the pyramid, both failing), N times on the same
+state (a failure leaves it unchanged, so each repeat takes the same path): its minimum, which removes a shared
+machine's preemptions, and median.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 
 from ddvs_service.camera import Intrinsics  # noqa: E402 - after the path set-up for running as a script
 from ddvs_service.lie import so3_exp  # noqa: E402
+from ddvs_service.registration.tracker import Tracker  # noqa: E402
 from ddvs_service.service.config import ServiceConfig  # noqa: E402
 from ddvs_service.service.pipeline import ServoPipeline  # noqa: E402
 from ddvs_service.service.startup import warm_up  # noqa: E402
@@ -141,6 +147,28 @@ def hold_profile(scene: PlanarScene, roi: tuple[int, int, int, int], turn_deg: f
             "search_ms_median": float(np.median(timer.searches_s)) * 1e3, "load_average": os.getloadavg()[0]}
 
 
+def failing_profile(scene: PlanarScene, roi: tuple[int, int, int, int], turn_deg: float, repeats: int
+                    ) -> dict[str, object]:
+    """The failing registration of the turned view, `repeats` times on one tracker's unchanged state (module
+    docstring): minimum and median ms."""
+    reference = np.clip(np.rint(scene.render()), 0, 255).astype(np.float32)
+    H = scene.homography(so3_exp(np.radians([0.0, 0.0, turn_deg])), np.array([0.03, 0.0, 0.0]))
+    moved = np.clip(np.rint(scene.render(H)), 0, 255).astype(np.float32)
+    tracker = Tracker.prepare(reference, roi, service_config(roi).registration.engine_config())
+    for _ in range(3):
+        tracker.track(reference)
+    times_ms = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = tracker.track(moved)
+        times_ms.append((time.perf_counter() - start) * 1e3)
+        if result.converged:
+            raise RuntimeError(f"the turned view was tracked: {result.reason}")
+    return {"roi": f"{roi[2]}x{roi[3]}", "failing_registration_ms_min": min(times_ms),
+            "failing_registration_ms_median": float(np.median(times_ms)), "reason": result.reason,
+            "load_average": os.getloadavg()[0]}
+
+
 def service_config(roi: tuple[int, int, int, int]) -> ServiceConfig:
     return ServiceConfig.from_file(ROOT / "configs" / "serve" / "ur5_poster.json").merged({
         "intrinsics": {"fx": CAM.fx, "fy": CAM.fy, "cx": CAM.cx, "cy": CAM.cy, "width": CAM.width,
@@ -230,6 +258,8 @@ def main() -> None:
     parser.add_argument("--modes", nargs="+", default=["background", "inline"], choices=["background", "inline"])
     parser.add_argument("--holds", type=int, default=0, metavar="N",
                         help="also profile the worker's holds of the gate over N repeated searches per ROI")
+    parser.add_argument("--failing", type=int, default=0, metavar="N",
+                        help="also time the failing registration of the first LOST frame N times per ROI")
     args = parser.parse_args()
     scene = PlanarScene(CAM, load_texture(TEXTURES[1], POSTER_BLUR_SIGMA))
     print(f"warm-up (the service's, kernels compiled or loaded): {warm_up(service_config(ROIS[70]), CAM):.1f} s; "
@@ -239,6 +269,9 @@ def main() -> None:
             for mode in args.modes:
                 row = measure(scene, ROIS[size], mode == "background", args.turn_deg, args.timeout)
                 print({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
+    for size in args.rois if args.failing else []:
+        row = failing_profile(scene, ROIS[size], args.turn_deg, args.failing)
+        print({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
     for size in args.rois if args.holds else []:
         row = hold_profile(scene, ROIS[size], args.turn_deg, args.holds)
         print({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
