@@ -214,8 +214,8 @@ def frame_trace(stamps: list[int], measured: list[int], arrivals: dict[int, int]
     so), `twist_lost` (processed, not stale, yet no twist arrived), `superseded` (never processed, and the service's
     `dropped` counter grew between the processed frames around it: a newer frame replaced it in the inbox), `lost`
     (never processed and not counted dropped: it did not reach the service's inbox — or the statuses around it
-    were lost, which the status key's congestion control allows). And `parts_ms`, where the
-    time of every answered frame went (`split_latency`)."""
+    were lost, which the status key's congestion control allows). And `parts_ms`, where the time of every answered
+    frame went (`split_latency`)."""
     index = {s: k for k, s in enumerate(stamps)}
     missed = []
     for s in measured:
@@ -324,13 +324,15 @@ def measure(mode: str, n: int, seconds: float, shm: bool, trace: bool) -> dict[s
                 plant.stdin.flush()
             listing = open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{p}" for p in sorted(set(ports.values()))]))
             processes = robots[:1] if mode == "shared" else robots  # a process is named after its first robot
-            time.sleep(max(0.0, t0 - time.time()))
-            cpu0, load0 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
-            counted0 = service_counters(listing, processes)
-            time.sleep(seconds)
-            cpu1, load1 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
-            counted1 = service_counters(listing, processes)
-            listing.close()
+            try:
+                time.sleep(max(0.0, t0 - time.time()))
+                cpu0, load0 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
+                counted0 = service_counters(listing, processes)
+                time.sleep(seconds)
+                cpu1, load1 = [cpu_seconds(p.pid) for p in services], os.getloadavg()
+                counted1 = service_counters(listing, processes)
+            finally:
+                listing.close()
             memory = [memory_mb(p.pid) for p in services]
             results = []
             for plant in plants:
