@@ -12,12 +12,17 @@ grows with the load, the CPU time much less. The first launch of any kernel in a
 runtime start (≈ 0.1 s).
 
     .venv/bin/python benchmarks/bench_compile.py [--paths planar general] [--grids 1x1 2x2 3x3 4x4 1x4 4x1]
-        [--degree 2] [--markdown]
+        [--degree 2] [--general-module FILE] [--markdown]
+
+`--general-module FILE` measures another version of `kernels/general_step.py` (e.g. `git show
+REV:kernels/general_step.py > /tmp/general_step_before.py`) in place of this tree's, for before/after rows in one
+run; the `general` rows then name the file.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
@@ -31,6 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.rows import print_rows  # noqa: E402
+
+MODULE_ENV = "DDVS_BENCH_GENERAL_MODULE"  # the child's `--general-module`
 
 ROI = (300, 250, 499, 399)  # u0, v0, u1, v1: 200×150
 H_TRUE = ((1.01, 0.02, 3.3), (-0.015, 0.99, -2.7), (1e-5, -2e-5, 1.0))
@@ -72,8 +79,8 @@ def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[]
     import numpy as np
 
     from ddvs_service.registration.general_basis import ParallaxBasis
-    from kernels import general_step as gs
 
+    gs = _general_module(os.environ.get(MODULE_ENV))
     ref, cur = _images()
     u0, v0, u1, v1 = ROI
     basis = ParallaxBasis.over((u0, v0, u1 - u0 + 1, v1 - v0 + 1), degree)
@@ -100,6 +107,20 @@ def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[]
     return launches
 
 
+def _general_module(path: str | None):
+    """`kernels.general_step`, or the module at `path` (`--general-module`)."""
+    if not path:
+        from kernels import general_step
+
+        return general_step
+    spec = importlib.util.spec_from_file_location("general_step_measured", path)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"--general-module: cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 PATHS = {"planar": planar_launches, "general": general_launches}
 
 
@@ -124,15 +145,15 @@ def first_launches(path: str, rows: int, cols: int, degree: int) -> dict[str, ob
         times.append(time.perf_counter() - t0)
     return {"first_s": round(sum(w for w, _ in per_kernel.values()), 2),
             "first_cpu_s": round(sum(c for _, c in per_kernel.values()), 2),
-            "slowest_cpu_s": max(c for _, c in per_kernel.values()),
             "per_kernel": per_kernel, "launch_ms": round(1e3 * float(np.median(times)), 3)}
 
 
-def measure(path: str, rows: int, cols: int, degree: int) -> dict[str, object]:
+def measure(path: str, rows: int, cols: int, degree: int, module: str | None = None) -> dict[str, object]:
     """Cold then warm, each in a fresh process, sharing one new cache directory."""
-    out: dict[str, object] = {"path": path, "grid": f"{rows}×{cols}", "degree": degree if path == "general" else None}
+    out: dict[str, object] = {"path": path, "grid": f"{rows}×{cols}", "degree": degree if path == "general" else None,
+                              "module": module if path == "general" else None}
     with tempfile.TemporaryDirectory(prefix="ddvs-ticache-") as cache:
-        env = {**os.environ, "TI_OFFLINE_CACHE_FILE_PATH": cache}
+        env = {**os.environ, "TI_OFFLINE_CACHE_FILE_PATH": cache, MODULE_ENV: module or ""}
         for kind in ("cold", "warm"):
             run = subprocess.run([sys.executable, __file__, "--child", path, str(rows), str(cols), str(degree)],
                                  env=env, check=True, capture_output=True, text=True)
@@ -147,20 +168,22 @@ def main() -> None:
     parser.add_argument("--paths", nargs="+", choices=sorted(PATHS), default=["planar", "general"])
     parser.add_argument("--grids", nargs="+", default=["1x1", "2x2", "3x3", "4x4", "1x4", "4x1"])
     parser.add_argument("--degree", type=int, default=2, choices=[2, 3], help="degree of ρ* (general path)")
+    parser.add_argument("--general-module", metavar="FILE", help="another general_step module to measure")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
     if args.child:
         path, rows, cols, degree = args.child
         print(json.dumps(first_launches(path, int(rows), int(cols), int(degree))))
         return
-    rows = [measure(path, *(int(n) for n in grid.split("x")), args.degree) for path in args.paths
+    rows = [measure(path, *(int(n) for n in grid.split("x")), args.degree, args.general_module) for path in args.paths
             for grid in args.grids]
     print_rows(rows, args.markdown,
-               ["path", "gain grid", "first launches, cold cache: wall / CPU", "slowest kernel, CPU",
+               ["path", "gain grid", "first launches, cold cache: wall / CPU", "each kernel, cold: CPU",
                 "first launches, warm cache: wall / CPU", "launch afterwards", "load"],
-               lambda r: [r["path"] + (f" (ρ* degree {r['degree']})" if r["degree"] else ""), r["grid"],
+               lambda r: [r["path"] + (f" (ρ* degree {r['degree']})" if r["degree"] else "")
+                          + (f" [{Path(r['module']).name}]" if r["module"] else ""), r["grid"],
                           f"{r['cold']['first_s']:.1f} s / {r['cold']['first_cpu_s']:.1f} s",
-                          f"{r['cold']['slowest_cpu_s']:.1f} s",
+                          " / ".join(f"{cpu:.1f}" for _, cpu in r["cold"]["per_kernel"].values()) + " s",
                           f"{r['warm']['first_s']:.1f} s / {r['warm']['first_cpu_s']:.1f} s",
                           f"{r['warm']['launch_ms']:.2f} ms", f"{r['load_average']:.2f}"])
 

@@ -25,21 +25,25 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
   row (`y` fixed) `φ_k = Σ_i C_ki x^i` with `C_ki = Σ_j B_kij y^j`, so it carries the `degree + 1` columns `x^i ge`
   (`ge` the image derivative along `e`) instead of the `n_rho` columns `φ_k ge`, and `φ_ij = a_i(v) b_j(u)` (the
   gain surface is separable), so it carries one column `b_j I(w)` per grid column instead of one per node.
-  `fold_row` expands each row's sums into the output layout through `C` and `a` in run-time loops. Before, the fold
-  and the node columns were unrolled (`ti.static`): the compiled code grew with the square of the column count and a
-  bicubic ρ* with a 3×3 gain grid compiled for minutes (figures: docs/performance.md);
+  `fold_row` expands each row's sums into the output layout in run-time loops, every output column a combination of
+  row columns through `C` and `a` (`_term`): one small loop nest for every specialisation, whatever its blocks;
 - reference pixels masked by the caller (`planar_step.MASKED`) get weight 0, as do warps whose 4×4 taps leave the
   image (branch-free: the accumulation loop has no ndarray store and no branch, so LLVM vectorises it);
 - robust weight and statistics exactly as `kernels.planar_step` (Huber/Tukey with a caller-given σ, valid and inlier
   counts, Σ r², the histogram of |r| of `planar_step.hist_bin` whose median gives the next MAD scale, over every
   valid pixel).
 
-Reduction as in PLATFORM-NOTES: each thread owns a band of rows, sums into registers, writes one partial; a serial
-pass adds the partials. A band walks each row in tiles of `ROW_TILE` columns: the accumulation loop keeps the tile's
-|r| in a thread-local buffer, which a second, scalar loop bins into the histogram (its stores are indexed by data,
-which would stop the first loop's vectorisation; re-sampling there instead cost as much as the accumulation).
+Reduction as in PLATFORM-NOTES: each thread owns a band of rows, sums a row into registers and folds it into its
+band's partial in the work array (adds, not atomics: no other thread writes there); a serial pass adds the
+partials. A band walks each row in tiles of `ROW_TILE` columns: the accumulation loop keeps the tile's |r| in a
+thread-local buffer, which a second, scalar loop bins into the histogram (its stores are indexed by data, which would
+stop the first loop's vectorisation; re-sampling there instead cost as much as the accumulation).
 Validity tests combine with `&`, never `and`: Taichi lowers `and` to a branch, and that one branch kept LLVM from
 vectorising the accumulation loop (docs/performance.md).
+Compile time: Taichi's store-to-load forwarding costs about (local-variable accesses) × (kernel size), so the
+kernel keeps its unrolled part to the one pixel loop (the Jacobian row and the per-row sums, plain scalar variables,
+not vectors indexed by `ti.static` constants) and keeps no large thread-local array: the band partials and the
+histogram live in the work array (docs/performance.md).
 One float32 parameter array in (`PARAMS_*`), one float32 work array out (`work_size`).
 """
 
@@ -58,7 +62,6 @@ from kernels.planar_step import (
     reference_taps,
     robust_weight,
     row_gains,
-    store_band,
     triangle_index,
 )
 from kernels.planar_step import PARAMS_GAINS as PLANAR_GAINS
@@ -110,7 +113,8 @@ def n_acc(n: int) -> int:
 
 
 def work_size(n: int) -> int:
-    """float32 work array size for `n` columns: final sums, per-band partials, per-band histograms."""
+    """float32 work array size for `n` columns: final sums, per-band partials, per-band histograms (the layout
+    `planar_step.finish_sums` reads)."""
     return n_acc(n) * (1 + MAX_BANDS) + HIST_BINS * MAX_BANDS
 
 
@@ -242,15 +246,6 @@ def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.
             iz, rho, rho_x / bs, rho_y / bs, xp, ti.select(ok, gxr, 0.0), ti.select(ok, gyr, 0.0), gain, b)
 
 
-N_PLAIN = N_FIXED + 1  # geometric and epipole columns and the bias: the same in both layouts
-
-
-@ti.func
-def _plain(f: ti.i32, n: ti.template()) -> ti.i32:
-    """Column of plain column `f` (< `N_PLAIN`) in a layout of `n` columns: the first `N_FIXED`, then the last."""
-    return ti.select(f < N_FIXED, f, n - 1)
-
-
 @ti.func
 def _sym(i: ti.i32, j: ti.i32, n: ti.template()) -> ti.i32:
     """Upper-triangle index of entry `(i, j)` or `(j, i)` of a symmetric `n × n` matrix (`triangle_index`)."""
@@ -258,58 +253,95 @@ def _sym(i: ti.i32, j: ti.i32, n: ti.template()) -> ti.i32:
 
 
 @ti.func
-def fold_row(acc: ti.template(), row: ti.template(), row_basis: ti.template(), a_rows: ti.template(),
-             n_rho: ti.template(), n_x: ti.template(), grid_rows: ti.template(), grid_cols: ti.template()):
-    """Add one row's sums `row` (per-row layout: 11 geometric/epipole columns, `n_x` columns `x^i ge`, one column
-    `b_j I(w)` per gain-grid column, the bias) into `acc` (output layout: 11, `n_rho` ρ* columns, the R·C gain nodes
-    row-major, the bias) through `φ_k = Σ_i row_basis[k, i] x^i` and `φ_ij = a_i b_j` on this row (`a_rows`: the
-    row tents). Block by block, in run-time loops: the compiled code does not grow with the number of columns."""
-    C = ti.static(grid_cols)
-    NG = ti.static(grid_rows * grid_cols)
-    P = ti.static(N_FIXED + n_rho + NG + 1)
+def _add(work: ti.template(), k: ti.i32, value: ti.f32):
+    """`work[k] += value` as a load and a store: Taichi makes `+=` on an ndarray an atomic add (a compare-and-swap
+    loop for floats), and only this band's thread writes there."""
+    work[k] = work[k] + value
+
+
+@ti.func
+def row_basis(cki: ti.template(), params: ti.template(), yb: ti.f32, n_rho: ti.template(), n_x: ti.template(),
+              degree: ti.template()):
+    """`cki[k·n_x + i] = C_ki = Σ_j B_kij y^j`: ρ* basis function k along the row whose basis coordinate is `yb`,
+    `φ_k = Σ_i C_ki x^i` (`B`: `params[PARAMS_BASIS:]`)."""
+    D1 = ti.static(degree + 1)
+    for k in range(n_rho):
+        for i in range(n_x):
+            c = 0.0
+            yj = 1.0
+            for j in range(D1):
+                c += params[PARAMS_BASIS + k * MAX_MONOMIALS + i * D1 + j] * yj
+                yj *= yb
+            cki[k * n_x + i] = c
+
+
+@ti.func
+def _terms(o: ti.i32, n_rho: ti.template(), n_x: ti.template()) -> ti.i32:
+    """Number of row columns output column `o` combines (`_term`)."""
+    return ti.select((o >= N_FIXED) & (o < N_FIXED + n_rho), n_x, 1)
+
+
+@ti.func
+def _term(o: ti.i32, t: ti.i32, cki: ti.template(), a_rows: ti.template(), n_rho: ti.template(), n_x: ti.template(),
+          grid_rows: ti.template(), grid_cols: ti.template()):
+    """`(row column, coefficient)` of term `t` of output column `o` on one row. Output layout: 11 geometric/epipole
+    columns, `n_rho` ρ* columns, the R·C gain nodes row-major, the bias; per-row layout: 11, `n_x` columns
+    `x^i ge`, one column `b_j I(w)` per gain-grid column, the bias. A geometric, epipole or bias column is its row
+    column; gain node (i, j) is `a_i` × column j (`a_rows`: the row tents); ρ* column k is `Σ_i C_ki` × column
+    `x^i ge` (`row_basis`). Selects, no branches (each branch would add nodes to Taichi's control-flow analysis)."""
+    SO = ti.static(N_FIXED + n_rho)  # first gain node of the output
+    gain = (o >= SO) & (o < SO + grid_rows * grid_cols)
+    rho = (o >= N_FIXED) & (o < SO)
+    node = ti.min(ti.max(o - SO, 0), grid_rows * grid_cols - 1)
+    k = ti.min(ti.max((o - N_FIXED) * n_x + t, 0), ti.static(max(n_rho * n_x, 1) - 1))
+    column = ti.select(gain, N_FIXED + n_x + node % grid_cols, ti.select(rho, N_FIXED + t, o))
+    column = ti.select(o >= SO + grid_rows * grid_cols, N_FIXED + n_x + grid_cols, column)
+    coef = ti.select(gain, a_rows[node // grid_cols], ti.select(rho, cki[k], 1.0))
+    return column, coef
+
+
+@ti.func
+def _inner(row: ti.template(), column_o: ti.i32, coef_o: ti.f32, ko: ti.i32, count: ti.i32, cki: ti.template(),
+           column: ti.i32, n_row: ti.template()) -> ti.f32:
+    """`Σ_t T[o, t] R[·, column]` over the terms of output column `o` (first term `coef_o` × row column
+    `column_o`, the others ρ* terms `cki[ko + t]` × `x^t ge`)."""
+    total = coef_o * row[_sym(column_o, column, n_row)]
+    for t in range(1, count):
+        total += cki[ko + t] * row[_sym(N_FIXED + t, column, n_row)]
+    return total
+
+
+@ti.func
+def fold_row(work: ti.template(), abase: ti.i32, row: ti.template(), cki: ti.template(), a_rows: ti.template(),
+             firsts: ti.template(), first_coefs: ti.template(), n_rho: ti.template(), n_x: ti.template(),
+             grid_rows: ti.template(), grid_cols: ti.template()):
+    """Add one row's sums `row` (per-row layout, `_term`: upper triangle of the row's `JᵀWJ`, its `JᵀWr`, 3
+    statistics) into the band partial at `work[abase:]` (output layout): with `T` the row's expansion (`_term`) as
+    a matrix, `T R Tᵀ` and `T g`, entry by entry, in run-time loops over the entries' terms (one small loop nest
+    for every specialisation; only ρ* columns have more than one term). `firsts`, `first_coefs`: scratch for the
+    first term of every output column."""
+    P = ti.static(N_FIXED + n_rho + grid_rows * grid_cols + 1)
     PR = ti.static(N_FIXED + n_x + grid_cols + 1)
     NT = ti.static(P * (P + 1) // 2)
     NTR = ti.static(PR * (PR + 1) // 2)
-    XR = ti.static(N_FIXED)  # first x^i column of the row
-    BR = ti.static(N_FIXED + n_x)  # first column-gain column of the row
-    SO = ti.static(N_FIXED + n_rho)  # first gain node of the output
-    for f in range(N_PLAIN):
-        fr = _plain(f, PR)
-        fo = _plain(f, P)
-        for g in range(f, N_PLAIN):
-            acc[triangle_index(fo, _plain(g, P), P)] += row[triangle_index(fr, _plain(g, PR), PR)]
-        for e in range(NG):
-            acc[_sym(fo, SO + e, P)] += row[_sym(fr, BR + e % C, PR)] * a_rows[e // C]
-        acc[NT + fo] += row[NTR + fr]
-    for e in range(NG):
-        for f in range(e, NG):
-            photo = row[_sym(BR + e % C, BR + f % C, PR)]
-            acc[triangle_index(SO + e, SO + f, P)] += photo * a_rows[e // C] * a_rows[f // C]
-        acc[NT + SO + e] += row[NTR + BR + e % C] * a_rows[e // C]
-    if ti.static(n_rho > 0):
-        for k in range(n_rho):
-            ro = N_FIXED + k
-            q = ti.Vector.zero(ti.f32, PR)  # Σ_i row_basis[k, i] · row[x^i, ·]: ρ* column k against the row's
-            for c in range(PR):
-                total = 0.0
-                for i in range(n_x):
-                    total += row[_sym(XR + i, c, PR)] * row_basis[k, i]
-                q[c] = total
-            for f in range(N_PLAIN):
-                acc[_sym(ro, _plain(f, P), P)] += q[_plain(f, PR)]
-            for e in range(NG):
-                acc[triangle_index(ro, SO + e, P)] += q[BR + e % C] * a_rows[e // C]
-            for l in range(k, n_rho):
-                total = 0.0
-                for i in range(n_x):
-                    total += q[XR + i] * row_basis[l, i]
-                acc[triangle_index(ro, N_FIXED + l, P)] += total
-            g_total = 0.0
-            for i in range(n_x):
-                g_total += row[NTR + XR + i] * row_basis[k, i]
-            acc[NT + ro] += g_total
-    for k in ti.static(range(N_STATS - 1)):
-        acc[NT + P + k] += row[NTR + PR + k]
+    for o in range(P):
+        firsts[o], first_coefs[o] = _term(o, 0, cki, a_rows, n_rho, n_x, grid_rows, grid_cols)
+    for o in range(P):
+        count = _terms(o, n_rho, n_x)
+        ko = (o - N_FIXED) * n_x
+        column_o = firsts[o]
+        coef_o = first_coefs[o]
+        for f in range(o, P):
+            total = first_coefs[f] * _inner(row, column_o, coef_o, ko, count, cki, firsts[f], PR)
+            for t in range(1, _terms(f, n_rho, n_x)):
+                total += cki[(f - N_FIXED) * n_x + t] * _inner(row, column_o, coef_o, ko, count, cki, N_FIXED + t, PR)
+            _add(work, abase + triangle_index(o, f, P), total)
+        g = coef_o * row[NTR + column_o]
+        for t in range(1, count):
+            g += cki[ko + t] * row[NTR + N_FIXED + t]
+        _add(work, abase + NT + o, g)
+    for k in range(N_STATS - 1):
+        _add(work, abase + NT + P + k, row[NTR + PR + k])
 
 
 @ti.kernel
@@ -328,8 +360,7 @@ def general_step(
     """Residuals, robust weights and normal equations of eq. (5) under the warp (2) (module docstring); `cur` holds
     the current image's cubic B-spline coefficients when `spline`, else the image itself (Keys interpolation)."""
     NR = ti.static(n_rho if with_rho else 0)
-    NG = ti.static(grid_rows * grid_cols)
-    P = ti.static(N_FIXED + NR + NG + 1)
+    P = ti.static(N_FIXED + NR + grid_rows * grid_cols + 1)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
     D1 = ti.static(degree + 1)
@@ -355,18 +386,24 @@ def general_step(
     G = load_vector(params, PARAMS_G, 9)
     span = load_vector(params, PARAMS_SPAN, 4)
     gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
-    basis = load_vector(params, PARAMS_BASIS, MAX_MONOMIALS * max(NR, 1))
     domain = load_vector(params, PARAMS_DOMAIN, 4)
     for it in range(nb * 512):  # one band per 512-iteration block (PLATFORM-NOTES)
         if it % 512 == 0:
             b = it // 512
-            hist = ti.Vector.zero(ti.f32, HIST_BINS)  # local arrays: their stores alias no ndarray
+            abase = (1 + b) * NACC  # this band's partial sums, then its |r| histogram
+            hbase = NACC * (1 + MAX_BANDS) + b * HIST_BINS
+            for k in range(NACC):
+                work[abase + k] = 0.0
+            for k in range(HIST_BINS):
+                work[hbase + k] = 0.0
             magnitude = ti.Vector.zero(ti.f32, ROW_TILE)  # |r| of the tile row being accumulated
-            acc = ti.Vector.zero(ti.f32, NACC)
+            cki = ti.Vector.zero(ti.f32, max(NR * NX, 1))  # the ρ* basis along the row (`row_basis`)
+            firsts = ti.Vector.zero(ti.i32, P)  # scratch of `fold_row`
+            first_coefs = ti.Vector.zero(ti.f32, P)
             rows = v1 - v0 + 1
             first = v0 + b * rows // nb
             for v in range(first, v0 + (b + 1) * rows // nb):
-                racc = ti.Vector.zero(ti.f32, NTR + PR + N_STATS)  # this row's sums, per-row layout
+                racc = [0.0] * (NTR + PR + N_STATS - 1)  # this row's sums, per-row layout: scalar variables
                 yp = _powers((v - bcy) / bs, degree)
                 a_rows, h = row_gains(span, gains, ti.cast(v, ti.f32), grid_rows, grid_cols)
                 for tile in range((u1 - u0 + ROW_TILE) // ROW_TILE):
@@ -399,26 +436,14 @@ def general_step(
                         du = x - cx  # = s · q_u in the current image
                         dv = y - cy
                         radial = (gx * du + gy * dv) / s
-                        J = ti.Vector.zero(ti.f32, PR)
-                        J[0] = s * gx
-                        J[1] = s * gy
-                        J[2] = gy * du - gx * dv
-                        J[3] = gx * du - gy * dv
-                        J[4] = 3.0 * s * radial
-                        J[5] = gx * dv + gy * du
-                        J[6] = -du * radial
-                        J[7] = -dv * radial
-                        # ∂w = (∂X − x ∂Z, ∂Y − y ∂Z) / Z
-                        J[8] = rho * s * gx * iz
-                        J[9] = rho * s * gy * iz
-                        J[10] = -rho * (gx * du + gy * dv) * iz
-                        if ti.static(with_rho):
-                            ge = (gx * (e[0] - x * e[2]) + gy * (e[1] - y * e[2])) * iz
-                            for i in ti.static(range(D1)):
-                                J[N_FIXED + i] = xp[i] * ge
-                        for j in ti.static(range(grid_cols)):
-                            J[N_FIXED + NX + j] = bt[j] * c0
-                        J[PR - 1] = 1.0
+                        ge = (gx * (e[0] - x * e[2]) + gy * (e[1] - y * e[2])) * iz  # image derivative along e
+                        # The row's Jacobian columns (a list of scalars: a vector would cost compile time, above);
+                        # sl(3), then the epipole: ∂w = (∂X − x ∂Z, ∂Y − y ∂Z) / Z.
+                        J = ([s * gx, s * gy, gy * du - gx * dv, gx * du - gy * dv, 3.0 * s * radial,
+                              gx * dv + gy * du, -du * radial, -dv * radial,
+                              rho * s * gx * iz, rho * s * gy * iz, -rho * (gx * du + gy * dv) * iz]
+                             + [xp[i] * ge for i in ti.static(range(NX))]
+                             + [bt[j] * c0 for j in ti.static(range(grid_cols))] + [1.0])
                         valid = ti.select(ok, 1.0, 0.0)
                         w = valid * robust_weight(r, sigma, kind)
                         for i in ti.static(range(PR)):
@@ -435,15 +460,9 @@ def general_step(
                     for k in range(ut1 - ut0 + 1):
                         a = magnitude[k]
                         if a >= 0.0:
-                            hist[hist_bin(a)] += 1.0
-                # Fold the row's sums into the output layout: φ_k = Σ_i row_basis[k, i] x^i, φ_ij = a_i b_j here.
-                row_basis = ti.Matrix.zero(ti.f32, max(NR, 1), D1)
-                if ti.static(with_rho):
-                    for k in range(NR):
-                        for i in range(D1):
-                            for j in range(D1):
-                                row_basis[k, i] += basis[k * MAX_MONOMIALS + i * D1 + j] * yp[j]
-                row = racc  # a copy: the fold indexes it at run time, the pixel loop's sums stay in registers
-                fold_row(acc, row, row_basis, a_rows, NR, NX, grid_rows, grid_cols)
-            store_band(work, acc, hist, b)
+                            _add(work, hbase + hist_bin(a), 1.0)
+                # Fold the row's sums into the band's: φ_k = Σ_i C_ki x^i, φ_ij = a_i b_j on this row.
+                row_basis(cki, params, (v - bcy) / bs, NR, NX, degree)
+                row = ti.Vector(racc)  # the fold indexes it at run time; the pixel loop's sums stay in registers
+                fold_row(work, abase, row, cki, a_rows, firsts, first_coefs, NR, NX, grid_rows, grid_cols)
     finish_sums(work, NACC, nb)
