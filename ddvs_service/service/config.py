@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
@@ -99,9 +99,8 @@ class ControlSettings(_Strict):
     threshold — an estimate that moves by several thresholds from frame to frame (a biased, noisy fit: a plate over
     a third of a 70×70 template) is not declared converged wherever its mean happens to read zero. An unbiased but
     very noisy estimate stops on a longer window instead, the last `noise_frames` tracked frames: the norm of their
-    mean and its standard error s/√N both below the threshold, and their scatter between `noise_ratio[0]` and
-    `noise_ratio[1]` × the one the image noise predicts from the registration's covariance (`service.settling`;
-    README, Robustness)."""
+    mean and its standard error s/√N both below the threshold, and their scatter at most `noise_ratio` × the one
+    the image noise predicts from the registration's covariance (`service.settling`; README, Robustness)."""
 
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
     gains: float | tuple[float, float, float, float, float, float] = 0.4
@@ -115,14 +114,7 @@ class ControlSettings(_Strict):
     settle_frames: int = Field(default=10, ge=1)
     scatter_factor: float = Field(default=2.0, gt=0)
     noise_frames: int = Field(default=90, ge=2)
-    noise_ratio: tuple[float, float] = (0.8, 3.0)
-
-    @field_validator("noise_ratio")
-    @classmethod
-    def _band(cls, value: tuple[float, float]) -> tuple[float, float]:
-        if not 0.0 < value[0] < value[1]:
-            raise ValueError(f"noise_ratio must be (low, high) with 0 < low < high, got {value}")
-        return value
+    noise_ratio: float = Field(default=3.0, gt=0)
 
     def law_config(self) -> ControlConfig:
         """The law's settings; its own stop threshold is 0 because the state machine decides when to stop."""

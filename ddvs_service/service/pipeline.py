@@ -77,7 +77,7 @@ class ServoPipeline:
         self.machine = StateMachine(control.stop_threshold, control.stop_threshold * control.resume_factor,
                                     control.converge_frames,
                                     scatter_threshold=control.stop_threshold * control.scatter_factor,
-                                    noise_ratio=control.noise_ratio)
+                                    max_noise_ratio=control.noise_ratio)
         self.reference: NDArray[np.float32] | None = None
         self.roi: Roi | None = None
         self.rho_coeffs: list[float] = []
@@ -108,7 +108,7 @@ class ServoPipeline:
         self.machine.resume_threshold = config.control.stop_threshold * config.control.resume_factor
         self.machine.converge_frames = config.control.converge_frames
         self.machine.scatter_threshold = config.control.stop_threshold * config.control.scatter_factor
-        self.machine.noise_ratio = config.control.noise_ratio
+        self.machine.max_noise_ratio = config.control.noise_ratio
         self._window.resize(config.control.settle_frames, config.control.noise_frames)
         self._window.threshold = config.control.stop_threshold
         if self.reference is not None and registration_changed:

@@ -9,14 +9,12 @@ Two windows of the same frames (an untracked frame empties both):
   s/√N (the mean is known to within it when the frames' errors are independent draws about it) and the ratio of s
   to the scatter the image noise alone predicts, p = √tr(A Σ̄ Aᵀ), Σ̄ the window's mean of the registration's Gauss-Newton
   covariances of `G` and `e` (`RegistrationResult.covariance`) and A the law's Jacobian at the newest frame
-  (`error_jacobian`). The stop needs all three: the mean below the threshold, known to within it, and the scatter
-  the noise predicts, no more and no less (`noise_ratio`, a band about 1). More: a fit that wanders (a biased
-  estimate under an occluder, a servo that oscillates) scatters more than its noise predicts, and over a longer
-  window more than over a short one, so its mean is not known to within the threshold. Less: the residual that
-  sets σ is not the noise but a model error (the frames' photometry beyond the gain grid, an unobserved part of the
-  warp) — the same error biases the fit, steadily, which no scatter shows. The band's width leaves room for the
-  Gauss-Newton covariance understating the scatter of an unbiased estimate (noise after JPEG and blur is not
-  independent from pixel to pixel; robust weights; README, Robustness: the measured ratios).
+  (`error_jacobian`). The stop needs all three: the mean below the threshold, known to within it, and a scatter
+  the noise explains — a fit that wanders (a biased estimate under an occluder, a servo that oscillates) scatters
+  more than its noise predicts, and over a longer window more than over a short one, so its mean is not known to
+  within the threshold. The Gauss-Newton covariance understates the scatter of an unbiased noisy estimate (noise
+  after JPEG and blur is not independent from pixel to pixel; robust weights): the bound on the ratio,
+  `noise_ratio`, leaves room for that (README, Robustness: the measured ratios).
 """
 
 from __future__ import annotations

@@ -55,12 +55,12 @@ class StateMachine:
     `scatter_threshold` on each (a mean below the threshold is no evidence of the pose when the estimates it averages
     scatter by more than the threshold: issue 20's confident wrong answer) — or, for an estimate that image noise
     makes scatter by more, with the long window's mean below the threshold, its standard error below the threshold
-    and its scatter within `noise_ratio` (low, high) × the one the noise predicts (`service.settling`);
-    `resume_threshold` (> stop) is the norm above which a CONVERGED servo resumes: the frame's own norm (a
-    disturbance is answered at once), or after a stop on the long window the norm of that window's mean (there a
-    single frame's norm exceeds it routinely; a disturbance of norm d moves the mean past it within N ·
-    resume_threshold / d frames). LOST and CONVERGED servos go back to SERVOING by themselves, a LOST one after
-    `confirm_frames` consecutive tracked frames.
+    and its scatter at most `max_noise_ratio` × the one the noise predicts (`service.settling`); `resume_threshold`
+    (> stop) is the norm above which a CONVERGED servo resumes: the frame's own norm (a disturbance is answered at
+    once), or after a stop on the long window the norm of that window's mean (there a single frame's norm exceeds
+    it routinely; a disturbance of norm d moves the mean past it within N · resume_threshold / d frames). LOST and
+    CONVERGED servos go back to SERVOING by themselves, a LOST one after `confirm_frames` consecutive tracked
+    frames.
     """
 
     stop_threshold: float
@@ -68,7 +68,7 @@ class StateMachine:
     converge_frames: int = 1
     confirm_frames: int = 3
     scatter_threshold: float = math.inf
-    noise_ratio: tuple[float, float] = (0.8, 3.0)
+    max_noise_ratio: float = 3.0
     state: ServoState = ServoState.IDLE
     _below: int = 0
     _tracked: int = 0
@@ -81,8 +81,8 @@ class StateMachine:
             )
         if not self.scatter_threshold > 0.0:
             raise ValueError(f"scatter_threshold must be > 0, got {self.scatter_threshold}")
-        if not 0.0 < self.noise_ratio[0] < self.noise_ratio[1]:
-            raise ValueError(f"noise_ratio must be (low, high) with 0 < low < high, got {self.noise_ratio}")
+        if not self.max_noise_ratio > 0.0:
+            raise ValueError(f"max_noise_ratio must be > 0, got {self.max_noise_ratio}")
         if self.converge_frames < 1:
             raise ValueError(f"converge_frames must be ≥ 1, got {self.converge_frames}")
         if self.confirm_frames < 1:
@@ -124,7 +124,7 @@ class StateMachine:
         settled = outcome.error_norm if outcome.settled_norm is None else outcome.settled_norm
         clean = settled < self.stop_threshold and outcome.scatter < self.scatter_threshold
         noisy = (outcome.noisy_norm < self.stop_threshold and outcome.standard_error < self.stop_threshold
-                 and self.noise_ratio[0] <= outcome.noise_ratio <= self.noise_ratio[1])
+                 and outcome.noise_ratio <= self.max_noise_ratio)
         below = outcome.tracked and (clean or noisy)
         noisy_mean = self._noisy_stop and math.isfinite(outcome.noisy_norm)
         disturbance = outcome.noisy_norm if noisy_mean else outcome.error_norm
