@@ -9,8 +9,9 @@
   solved on the finest `tracking_levels` pyramid levels first, from the constant-velocity prediction when
   `config.base.predict_motion` is set and the last two frames converged: the last inter-frame motion
   `M = G_{k−1} G_{k−2}⁻¹` (current-image pixels) applied once more, `(G, e) = (M G_{k−1}, M e_{k−1})` (eq. (2):
-  `P_k = M P_{k−1}`); when that fails, again from the last good estimate over the whole pyramid, the robust scale
-  estimated afresh (no cap, as the planar `Tracker`'s retry). These warm-started frames converge at
+  `P_k = M P_{k−1}`); when that fails, again from the last good estimate over the whole pyramid, under the capped
+  robust scale (unlike the planar `Tracker`'s retry, so a jump of a few pixels within one frame is not recovered
+  within the frame but re-acquired after `lost_after` frames). These warm-started frames converge at
   `config.base.tracking_step_tolerance_px`, and both attempts give up early on a hopeless frame (as the planar
   `Tracker`: the stream refines its estimate again on every frame, and the frame that discovers a loss costs about
   twice `tracking_give_up_iterations`, not `max_iterations` at every level of both attempts).
@@ -149,10 +150,10 @@ class GeneralTracker:
         result = problem.track(current, G0, e0, self._rho, *photometric, first_level=base.tracking_levels - 1,
                                tolerance_px=tolerance, scale_cap=cap, give_up=True)
         if not result.converged and (G0 is not self._G or len(result.iterations) < len(problem.levels)):
-            # the robust scale re-estimated on this frame, as the planar `Tracker`'s retry: a jump of several pixels
-            # leaves the last frames' σ far below this frame's residuals, and the capped weights reject its signal
-            result = problem.track(current, self._G, self._e, self._rho, self._gains, self._beta, None,
-                                   tolerance_px=tolerance, give_up=True)
+            # under the last frames' capped σ (re-estimated, as the planar retry's, a hard combination's retries
+            # under an occluder gave up at the coarsest level: LOST frames on the saddle)
+            result = problem.track(current, self._G, self._e, self._rho, *photometric, tolerance_px=tolerance,
+                                   scale_cap=cap, give_up=True)
         implausible = self._integrity.judge(G0, result.G, result.scale) if result.converged else ""
         if implausible:
             result.converged, result.reason = False, implausible
