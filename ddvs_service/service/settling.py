@@ -21,7 +21,6 @@ Two windows of the same frames (an untracked frame empties both):
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -43,26 +42,63 @@ def error_jacobian(law: ControlLaw, G: F64, e: F64, rho: float) -> F64:
     return np.stack([(law.error((x + d)[:9].reshape(3, 3), (x + d)[9:], rho) - base) / STEP for d in steps], axis=1)
 
 
+class _Sums:
+    """Running sums over the newest `length` frames of a `SettleWindow`'s buffers: Σε̄_k, Σ‖ε̄_k‖², ΣΣ_k and the
+    number of frames whose covariance is unknown (a frame costs one add and one subtract, not a pass over the
+    window; the rounding they accumulate, ~1e-14 per frame on errors of norm ≤ 2, stays far below the thresholds)."""
+
+    def __init__(self, length: int) -> None:
+        self.length = length
+        self.clear()
+
+    def clear(self) -> None:
+        self.error = np.zeros(6)
+        self.square = 0.0
+        self.covariance = np.zeros((12, 12))
+        self.unknown = 0
+
+    def update(self, sign: float, error: F64, covariance: F64 | None) -> None:
+        self.error += sign * error
+        self.square += sign * float(error @ error)
+        if covariance is None:
+            self.unknown += int(sign)
+        else:
+            self.covariance += sign * covariance
+
+    def mean_and_scatter(self) -> tuple[float, float]:
+        """‖mean‖ and the RMS deviation from the mean of the window's errors (full window)."""
+        mean = self.error / self.length
+        mean_square = float(mean @ mean)
+        return math.sqrt(mean_square), math.sqrt(max(self.square / self.length - mean_square, 0.0))
+
+
 class SettleWindow:
-    """The last tracked frames' control errors and registration covariances (module docstring). `threshold`: the
-    stop threshold; the long window's predicted scatter (9 evaluations of the law) is computed only on frames where
-    its mean and standard error are both below it, the other two conditions of that clause."""
+    """The last tracked frames' control errors and registration covariances (module docstring): a ring buffer of
+    the longer window's length and running sums over each window. `threshold`: the stop threshold; the long window's
+    predicted scatter (the law evaluated 13 times) is computed only on frames where its mean and standard error are
+    both below it, the other two conditions of that clause."""
 
     def __init__(self, settle_frames: int, noise_frames: int, threshold: float) -> None:
         self.threshold = threshold
-        self._errors: deque[F64] = deque()
-        self._covariances: deque[F64 | None] = deque()
+        self._lengths: tuple[int, int] | None = None
         self.resize(settle_frames, noise_frames)
 
     def resize(self, settle_frames: int, noise_frames: int) -> None:
-        """New window lengths, keeping the newest frames."""
+        """New window lengths; the window starts empty when they changed (otherwise nothing changes)."""
+        if (settle_frames, noise_frames) == self._lengths:
+            return
+        self._lengths = (settle_frames, noise_frames)
         self.settle_frames, self.noise_frames = settle_frames, noise_frames
-        self._errors = deque(self._errors, maxlen=max(settle_frames, noise_frames))
-        self._covariances = deque(self._covariances, maxlen=max(settle_frames, noise_frames))
+        length = max(settle_frames, noise_frames)
+        self._errors = np.zeros((length, 6))
+        self._covariances: list[F64 | None] = [None] * length
+        self._short, self._long = _Sums(settle_frames), _Sums(noise_frames)
+        self.clear()
 
     def clear(self) -> None:
-        self._errors.clear()
-        self._covariances.clear()
+        self._count = self._next = 0  # frames in the buffer, slot of the next frame
+        self._short.clear()
+        self._long.clear()
 
     def add(self, error: F64 | None, covariance: F64 | None = None,
             jacobian: Callable[[], F64] | None = None) -> tuple[float, float, float, float, float]:
@@ -76,26 +112,25 @@ class SettleWindow:
         if error is None:
             self.clear()
             return NOT_SETTLED
-        self._errors.append(np.asarray(error, dtype=np.float64))
-        self._covariances.append(covariance)
-        errors = np.asarray(self._errors)
-        short_norm, scatter = _mean_and_scatter(errors[-self.settle_frames:])
-        if len(errors) < self.settle_frames:
-            scatter = math.inf
-        covariances = list(self._covariances)[-self.noise_frames:]
-        if len(errors) < self.noise_frames or any(c is None for c in covariances):
+        length = len(self._errors)
+        error = np.asarray(error, dtype=np.float64)
+        for sums in (self._short, self._long):
+            if self._count >= sums.length:  # the frame `sums.length` frames ago leaves that window
+                old = (self._next - sums.length) % length
+                sums.update(-1.0, self._errors[old], self._covariances[old])
+            sums.update(1.0, error, covariance)
+        self._errors[self._next], self._covariances[self._next] = error, covariance
+        self._next = (self._next + 1) % length
+        self._count = min(self._count + 1, length)
+        short_norm, scatter = self._short.mean_and_scatter() if self._count >= self.settle_frames else (
+            float(np.linalg.norm(self._short.error)) / self._count, math.inf)
+        if self._count < self.noise_frames or self._long.unknown:
             return short_norm, scatter, float("nan"), math.inf, math.inf
-        norm, s = _mean_and_scatter(errors[-self.noise_frames:])
+        norm, s = self._long.mean_and_scatter()
         standard_error = s / math.sqrt(self.noise_frames)
         ratio = math.inf
         if norm < self.threshold and standard_error < self.threshold and jacobian is not None:
             A = jacobian()
-            predicted = float(np.trace(A @ np.mean(np.asarray(covariances), axis=0) @ A.T))
+            predicted = float(np.trace(A @ (self._long.covariance / self.noise_frames) @ A.T))
             ratio = s / math.sqrt(predicted) if predicted > 0.0 else math.inf
         return short_norm, scatter, norm, standard_error, ratio
-
-
-def _mean_and_scatter(errors: F64) -> tuple[float, float]:
-    """‖mean‖ and the RMS deviation from the mean of the rows of `errors`."""
-    mean = errors.mean(axis=0)
-    return float(np.linalg.norm(mean)), float(np.sqrt(np.mean(np.sum((errors - mean) ** 2, axis=1))))
