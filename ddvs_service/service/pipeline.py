@@ -24,7 +24,7 @@ from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.estimators import Estimate, GeneralEstimator, PlanarEstimator
 from ddvs_service.service.guard import ErrorGuard
-from ddvs_service.service.settling import SettleWindow, error_jacobian
+from ddvs_service.service.settling import Figures, SettleWindow, error_jacobian
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine
 from kernels.exclusive import GATE
 
@@ -238,7 +238,7 @@ class ServoPipeline:
         with GATE.hold():
             return self._estimator.residual(to_grey(frame))
 
-    def _settled(self, out: ControlOutput | None, est: Estimate) -> tuple[float, float, float, float, float]:
+    def _settled(self, out: ControlOutput | None, est: Estimate) -> Figures:
         """What the stop decision compares (`service.settling`): the short window's ‖ē‖ and scatter, the long
         window's ‖ē‖, standard error and scatter over the one the registration's covariance predicts; an untracked
         frame (`out` None) empties the window. A resume compares the frame's own norm with `resume_factor ×` the

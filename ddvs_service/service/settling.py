@@ -29,7 +29,8 @@ from numpy.typing import NDArray
 from ddvs_service.control.law import ControlLaw
 
 F64 = NDArray[np.float64]
-NOT_SETTLED = (float("nan"), math.inf, float("nan"), math.inf, math.inf)
+Figures = tuple[float, float, float, float, float | Callable[[], float]]
+NOT_SETTLED: Figures = (float("nan"), math.inf, float("nan"), math.inf, math.inf)
 STEP = 1e-6  # forward-difference step on `G`'s and `e`'s entries (the third row's: against a denominator of ~1)
 
 
@@ -76,7 +77,7 @@ class SettleWindow:
     """The last tracked frames' control errors and registration covariances (module docstring): a ring buffer of
     the longer window's length and running sums over each window. `threshold`: the stop threshold; the long window's
     predicted scatter (the law evaluated 13 times) is computed only on frames where its mean and standard error are
-    both below it, the other two conditions of that clause."""
+    both below it, the other two conditions of that clause, and only when asked for (`add`)."""
 
     def __init__(self, settle_frames: int, noise_frames: int, threshold: float) -> None:
         self.threshold = threshold
@@ -101,14 +102,15 @@ class SettleWindow:
         self._long.clear()
 
     def add(self, error: F64 | None, covariance: F64 | None = None,
-            jacobian: Callable[[], F64] | None = None) -> tuple[float, float, float, float, float]:
+            jacobian: Callable[[], F64] | None = None) -> Figures:
         """Add a tracked frame's control error and its registration's covariance of [vec(G), e] (None: unknown;
         `RegistrationResult.covariance`), or None for an untracked frame (which empties the window). `jacobian`:
         the newest frame's `error_jacobian`, used for the whole long window (its mean below the threshold: the
         camera is near the goal, where A changes little). Returns the figures `StateMachine` compares: (‖ē‖, s) of
         the short window (s inf while it is not full), (‖ē‖, s/√N, s/p) of the long one (nan, inf, inf while it is
-        not full or a frame's covariance is unknown; s/p inf unless ‖ē‖ and s/√N are below the threshold);
-        `NOT_SETTLED` for an untracked frame."""
+        not full or a frame's covariance is unknown; s/p inf unless ‖ē‖ and s/√N are below the threshold, and then a
+        function that computes it when called, as it costs 13 evaluations of the law and the stop decision needs it
+        only while the short window does not settle); `NOT_SETTLED` for an untracked frame."""
         if error is None:
             self.clear()
             return NOT_SETTLED
@@ -128,9 +130,14 @@ class SettleWindow:
             return short_norm, scatter, float("nan"), math.inf, math.inf
         norm, s = self._long.mean_and_scatter()
         standard_error = s / math.sqrt(self.noise_frames)
-        ratio = math.inf
-        if norm < self.threshold and standard_error < self.threshold and jacobian is not None:
-            A = jacobian()
-            predicted = float(np.trace(A @ (self._long.covariance / self.noise_frames) @ A.T))
-            ratio = s / math.sqrt(predicted) if predicted > 0.0 else math.inf
+        if not (norm < self.threshold and standard_error < self.threshold and jacobian is not None):
+            return short_norm, scatter, norm, standard_error, math.inf
+        covariance = self._long.covariance / self.noise_frames
+        evaluate = jacobian
+
+        def ratio() -> float:
+            A = evaluate()
+            predicted = float(np.trace(A @ covariance @ A.T))
+            return s / math.sqrt(predicted) if predicted > 0.0 else math.inf
+
         return short_norm, scatter, norm, standard_error, ratio

@@ -11,6 +11,7 @@ Only SERVOING publishes a non-zero twist.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
@@ -43,7 +44,7 @@ class FrameOutcome:
     scatter: float = 0.0
     noisy_norm: float = math.nan
     standard_error: float = math.inf
-    noise_ratio: float = math.inf
+    noise_ratio: float | Callable[[], float] = math.inf  # a function: computed only if the decision needs it
 
 
 @dataclass
@@ -123,9 +124,8 @@ class StateMachine:
             return self.state
         settled = outcome.error_norm if outcome.settled_norm is None else outcome.settled_norm
         clean = settled < self.stop_threshold and outcome.scatter < self.scatter_threshold
-        noisy = (outcome.noisy_norm < self.stop_threshold and outcome.standard_error < self.stop_threshold
-                 and outcome.noise_ratio <= self.max_noise_ratio)
-        below = outcome.tracked and (clean or noisy)
+        # the long window's clause matters only while not CONVERGED and the short one does not hold
+        below = outcome.tracked and (clean or (self.state != ServoState.CONVERGED and self._noisy(outcome)))
         noisy_mean = self._noisy_stop and math.isfinite(outcome.noisy_norm)
         disturbance = outcome.noisy_norm if noisy_mean else outcome.error_norm
         self._below = self._below + 1 if below else 0
@@ -143,6 +143,13 @@ class StateMachine:
         else:
             self.state = ServoState.SERVOING
         return self.state
+
+    def _noisy(self, outcome: FrameOutcome) -> bool:
+        """The long window's clause: its mean below the threshold, known to within it, a scatter the noise explains."""
+        if not (outcome.noisy_norm < self.stop_threshold and outcome.standard_error < self.stop_threshold):
+            return False
+        ratio = outcome.noise_ratio() if callable(outcome.noise_ratio) else outcome.noise_ratio
+        return ratio <= self.max_noise_ratio
 
     @property
     def moves(self) -> bool:
