@@ -404,6 +404,9 @@ def test_bridge_in_ros2_mode_reads_joint_states_and_commands_ros2_control(ros_si
             stop.set()
             thread.join(5)
             node.close()
+    deadline = time.monotonic() + 5.0  # the SDK's subscriber hands samples to its callback on a thread of its own
+    while len(received) < len(raw) and time.monotonic() < deadline:
+        time.sleep(0.05)
     raw_sub.undeclare()
     for endpoint in (joints, twist, commands, other_hash):
         endpoint.close()
