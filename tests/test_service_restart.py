@@ -14,6 +14,7 @@ from test_service_node import F, H, Operator, Service, W, past_lost, running_ser
 from ddvs_service.camera import Intrinsics
 from ddvs_service.protocol import encode_camera_info
 from ddvs_service.protocol.ros import CameraInfo, Header, Time
+from ddvs_service.service.config import ServiceConfig
 
 
 def publish_camera_info(op: Operator) -> None:
@@ -83,21 +84,19 @@ def test_restart_applies_the_edited_file_and_keeps_run_time_changes(tmp_path: Pa
     assert json.loads((tmp_path / "state" / "config.json").read_text())["frame_timeout_s"] == 0.25
 
 
-def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp_path: Path) -> None:
-    """A planar servo stopped while it tracked persists its last good estimate; restarted, it warms up the tracking
-    kernels only (the initialiser's compile at the first search that needs it) and re-acquires the unchanged view
-    from that estimate, not by the global initialiser."""
-    port = free_port()
-    config = service_config(port, tmp_path / "state")
-    img, view = scene(), shifted(scene(), 5.0, 3.0)
+def _servo_until_tracked(config: ServiceConfig, tmp_path: Path, port: int, img: np.ndarray,
+                         view: np.ndarray) -> None:
+    """Start a service, set `img` as the reference, start and serve `view` until the servo tracks it; stop it."""
     with running_service(config, tmp_path, port) as (_, op):
         assert op.command(op="set_reference", source="next_frame").ok
         assert op.send(img)["state"] == "READY"
         assert op.command(op="start").ok
         assert past_lost(op, view)[0]["state"] == "SERVOING"
-    G = np.reshape(json.loads((tmp_path / "state" / "state.json").read_text())["last_good_G"], (3, 3))
-    centre = G @ [W / 2, H / 2, 1.0]  # reference → current pixels: the view is the reference shifted by (5, 3)
-    assert np.allclose(centre[:2] / centre[2], [W / 2 + 5.0, H / 2 + 3.0], atol=0.2), G
+
+
+def _restart_and_serve(config: ServiceConfig, tmp_path: Path, port: int,
+                       view: np.ndarray) -> tuple[dict, list[str], str]:
+    """Restart the service on its state, serve `view` past LOST; its last status, every status message, its log."""
     service = Service(config, tmp_path)
     op = Operator(port)
     try:
@@ -107,7 +106,21 @@ def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp
         code, log = service.stop()
         op.close()
     assert code == 0
-    messages = [s["message"] for s in op.statuses]
+    return status, [s["message"] for s in op.statuses], log
+
+
+def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp_path: Path) -> None:
+    """A planar servo stopped while it tracked persists its last good estimate; restarted, it warms up the tracking
+    kernels only (the initialiser's compile at the first search that needs it) and re-acquires the unchanged view
+    from that estimate, not by the global initialiser."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    img, view = scene(), shifted(scene(), 5.0, 3.0)
+    _servo_until_tracked(config, tmp_path, port, img, view)
+    G = np.reshape(json.loads((tmp_path / "state" / "state.json").read_text())["last_good_G"], (3, 3))
+    centre = G @ [W / 2, H / 2, 1.0]  # reference → current pixels: the view is the reference shifted by (5, 3)
+    assert np.allclose(centre[:2] / centre[2], [W / 2 + 5.0, H / 2 + 3.0], atol=0.2), G
+    status, messages, log = _restart_and_serve(config, tmp_path, port, view)
     assert status["state"] == "SERVOING", status
     assert "re-acquired by tracking from the last good estimate" in messages, messages
     assert not any("global initialisation: ok" in m for m in messages), messages
@@ -121,24 +134,11 @@ def test_an_unusable_persisted_estimate_is_dropped_and_the_first_frame_initialis
     port = free_port()
     config = service_config(port, tmp_path / "state")
     img, view = scene(), shifted(scene(), 5.0, 3.0)
-    with running_service(config, tmp_path, port) as (_, op):
-        assert op.command(op="set_reference", source="next_frame").ok
-        assert op.send(img)["state"] == "READY"
-        assert op.command(op="start").ok
-        assert past_lost(op, view)[0]["state"] == "SERVOING"
+    _servo_until_tracked(config, tmp_path, port, img, view)
     state_file = tmp_path / "state" / "state.json"
     state = json.loads(state_file.read_text())
     state_file.write_text(json.dumps({**state, "last_good_G": [1.0, "x", 0.0]}))
-    service = Service(config, tmp_path)
-    op = Operator(port)
-    try:
-        service.wait_ready(op)
-        status, _ = past_lost(op, view)
-    finally:
-        code, log = service.stop()
-        op.close()
-    assert code == 0
-    messages = [s["message"] for s in op.statuses]
+    status, messages, log = _restart_and_serve(config, tmp_path, port, view)
     assert status["state"] == "SERVOING", status
     assert any("global initialisation: ok" in m for m in messages), messages
     assert "persisted last good estimate not usable" in log
