@@ -54,7 +54,7 @@ class ServeProcess:
         self.changes = FleetChanges(self.writer)
         self.robots: dict[str, RobotServo] = {}
         self.scheduler = Scheduler()
-        self._warmed: set[str] = set()
+        self._warmed: set[tuple[str, bool]] = set()
         self._session: zenoh.Session | None = None
         if robots is None:
             configs, errors = fleet.to_serve(self.changes)
@@ -86,10 +86,10 @@ class ServeProcess:
         alone = all(other is robot for other in self.robots.values())
         initialiser = needs_initialiser(robot.config, robot.pipeline.last_good, alone)
         key = robot.config.registration.model_dump_json()
-        if key + "+initialiser" in self._warmed or (not initialiser and key in self._warmed):
+        if (key, True) in self._warmed or (key, initialiser) in self._warmed:  # with the initialiser covers without
             return 0.0
         seconds = warm_up(robot.config, robot.pipeline.intrinsics, initialiser)
-        self._warmed.add(key + "+initialiser" if initialiser else key)
+        self._warmed.add((key, initialiser))
         log.info("kernels warmed up", extra=fields(robot=robot.name, seconds=round(seconds, 3),
                                                    initialiser=initialiser))
         return seconds
