@@ -68,6 +68,8 @@ RESUMING_STATES = (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
 STALE_AFTER = 2  # a frame's twist is stale once this many newer frames have arrived
 NOT_PERSISTED = ("zenoh", "state_dir")  # configuration that comes from the command line, never from the state
 
+# a persisted state's reference, ROI, ρ* and last good estimate, adopted once the camera intrinsics are known
+_Restored = tuple[NDArray, tuple[int, int, int, int] | None, list[float], NDArray | None]
 
 class RobotServo:
     """One robot's servo. `wakeup`: the loop's shared wake-up (a new one when this robot has the loop to itself)."""
@@ -89,8 +91,7 @@ class RobotServo:
         self._persisted_rho: list[float] = []
         self.inbox = Inbox(wakeup=wakeup)
         self._zenoh: _Declared | None = None
-        self._restored_reference: tuple[NDArray, tuple[int, int, int, int] | None, list[float], NDArray | None] | None \
-            = None
+        self._restored_reference: _Restored | None = None
         self.writer = BackgroundWriter(self.store)
         self._restore(state)
         self._persist_config()
@@ -484,11 +485,12 @@ def _last_good(state: dict[str, Any]) -> NDArray | None:
     if values is None:
         return None
     try:
-        G = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):
-        G = np.full(1, np.nan)
-    if G.shape != (9,) or not np.all(np.isfinite(G)) or np.linalg.det(G.reshape(3, 3)) <= 0.0:
+        G = np.asarray(values, dtype=np.float64).reshape(3, 3)
+        usable = bool(np.all(np.isfinite(G)) and np.linalg.det(G) > 0.0)
+    except (TypeError, ValueError):  # not 9 numbers
+        usable = False
+    if not usable:
         log.error("persisted last good estimate not usable; the first frame is initialised globally",
                   extra=fields(last_good_G=values))
         return None
-    return G.reshape(3, 3)
+    return G
