@@ -241,8 +241,7 @@ class ServoPipeline:
     def _settled(self, out: ControlOutput | None, est: Estimate) -> Figures:
         """What the stop decision compares (`service.settling`): the short window's ‖ē‖ and scatter, the long
         window's ‖ē‖, standard error and scatter over the one the registration's covariance predicts; an untracked
-        frame (`out` None) empties the window. A resume compares the frame's own norm with `resume_factor ×` the
-        threshold, so a disturbance is answered at once."""
+        frame (`out` None) empties the window. What a resume compares: `StateMachine`."""
         if out is None:
             return self._window.add(None)
         law = self._law
