@@ -111,3 +111,41 @@ def test_loopback_round_trip_keeps_only_the_newest_frame(port: int) -> None:
     assert sub_session.is_closed() and pub_session.is_closed()
     with pytest.raises(RuntimeError, match="closed"):
         frames.try_recv()
+
+
+def test_shared_memory_pool_holds_frames_and_larger_ones_arrive_over_the_link(port: int) -> None:
+    """Frames that fit the publisher's pool arrive in shared memory (once Zenoh has created the pool, lazily, at the
+    first large message); one larger than the whole pool is sent over the TCP link instead and arrives intact."""
+    keys = Keys(robot="pool")
+    assert json.loads(SessionConfig().to_zenoh_config().get_json(
+        "transport/shared_memory/transport_optimization/pool_size")) == 4 * 2**20
+    with pytest.raises(ValueError):
+        SessionConfig(shm_pool_mib=0)
+    listener = SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])
+    connector = SessionConfig(connect=[f"tcp/127.0.0.1:{port}"], shm_pool_mib=1.0)
+    rng = np.random.default_rng(0)
+    small = rng.integers(0, 256, 320 * 240, np.uint8).tobytes()  # 75 KiB: fits the 1 MiB pool
+    large = rng.integers(0, 256, 3 * 2**20, np.uint8).tobytes()  # 3 MiB: cannot
+    with open_session(listener) as sub_session, open_session(connector) as pub_session:
+        received: list[tuple[bytes, bool]] = []
+        subscriber = sub_session.declare_subscriber(
+            keys.camera_image, lambda s: received.append((s.payload.to_bytes(), s.payload.as_shm() is not None)))
+        publisher = declare_publisher(pub_session, keys, "camera_image")
+
+        def put_and_receive(payload: bytes) -> tuple[bytes, bool]:
+            """Put until it arrives (puts before the subscription has propagated are dropped)."""
+            received.clear()
+            deadline = time.monotonic() + 10.0
+            while not received:
+                assert time.monotonic() < deadline, f"a {len(payload)}-byte frame did not arrive within 10 s"
+                publisher.put(payload)
+                time.sleep(0.1)
+            return received[0]
+
+        deadline = time.monotonic() + 10.0
+        while not put_and_receive(small)[1]:
+            assert time.monotonic() < deadline, "no frame arrived in shared memory within 10 s"
+        assert put_and_receive(large) == (large, False)
+        assert put_and_receive(small) == (small, True)
+        publisher.undeclare()
+        subscriber.undeclare()

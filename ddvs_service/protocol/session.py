@@ -43,7 +43,14 @@ def _split_endpoints(values: str | list[str] | None) -> list[str]:
 
 class SessionConfig(BaseModel):
     """How a node joins the Zenoh network. Peer mode with multicast scouting off by default: peers then find each
-    other only through `connect`/`listen` endpoints (and gossip), which is what tests and lab set-ups want."""
+    other only through `connect`/`listen` endpoints (and gossip), which is what tests and lab set-ups want.
+
+    `shm_pool_mib` (MiB; Zenoh's own default is 16) sizes the pool in which this session, when `shm` is on, writes
+    its large outgoing messages (frames; Zenoh's threshold is 3 KiB) for zero-copy delivery on the host. Every
+    subscriber on the host maps the pool of each publisher it receives from, resident as far as its pages were
+    written — a fleet service maps one pool per robot camera —, so the default holds a few frames only (four
+    640×480 RGB images, fifty 320×240 grey ones); a message that finds no room is sent over the link instead,
+    unchanged, so larger frames still arrive, copied."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -52,6 +59,7 @@ class SessionConfig(BaseModel):
     listen: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
     shm: bool = True
+    shm_pool_mib: float = Field(default=4.0, gt=0.0)
     zenoh_config: Path | None = None
     overrides: dict[str, Any] = Field(default_factory=dict)
 
@@ -110,6 +118,8 @@ class SessionConfig(BaseModel):
             config.insert_json5("listen/endpoints", json.dumps(self.listen))
         config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         config.insert_json5("transport/shared_memory/enabled", json.dumps(self.shm))
+        config.insert_json5("transport/shared_memory/transport_optimization/pool_size",
+                            json.dumps(int(self.shm_pool_mib * 2**20)))
         for key, value in self.overrides.items():
             config.insert_json5(key, json.dumps(value))
         return config
