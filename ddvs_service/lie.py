@@ -157,10 +157,26 @@ def sl3_exp(x: ArrayLike) -> F64:
     return expm(sl3_hat(x))
 
 
+def det3(G: ArrayLike) -> float:
+    """Determinant of a 3×3 matrix by the rule of Sarrus (no LAPACK call: the trackers take several per frame)."""
+    a, b, c, d, e, f, g, h, i = np.asarray(G, dtype=np.float64).reshape(9).tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
+def inv3(G: ArrayLike) -> F64:
+    """Inverse of a 3×3 matrix: its adjugate over its determinant (no LAPACK call; a well-conditioned matrix such as
+    one of SL(3) is inverted to round-off, as by an LU solve). A singular matrix gives infinities or NaN, no error."""
+    a, b, c, d, e, f, g, h, i = np.asarray(G, dtype=np.float64).reshape(9).tolist()
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * A + b * B + c * C
+    return np.array([[A, c * h - b * i, b * f - c * e], [B, a * i - c * g, c * d - a * f],
+                     [C, b * g - a * h, a * e - b * d]]) / det
+
+
 def sl3_normalize(G: ArrayLike) -> F64:
     """Scale a 3×3 matrix with positive determinant to determinant 1 (SL(3))."""
     G = np.asarray(G, dtype=np.float64)
-    d = float(np.linalg.det(G))
-    if not np.isfinite(d) or d <= 0.0:
+    d = det3(G)
+    if not math.isfinite(d) or d <= 0.0:
         raise ValueError(f"cannot normalise to SL(3): determinant is {d}, expected a positive finite value")
     return G / np.cbrt(d)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from ddvs_service.lie import SL3_GENERATORS, expm, sl3_exp, sl3_hat, so3_exp
+from ddvs_service.lie import SL3_GENERATORS, det3, expm, inv3, sl3_exp, sl3_hat, sl3_normalize, so3_exp
 
 
 def taylor_reference(A: np.ndarray, terms: int = 60) -> np.ndarray:
@@ -48,3 +48,18 @@ def test_sl3_hat_and_exp():
     G = sl3_exp(x)
     assert abs(np.linalg.det(G) - 1.0) < 1e-13
     assert np.allclose(G @ sl3_exp(-x), np.eye(3), atol=1e-13)
+
+
+def test_det3_inv3_and_sl3_normalize_agree_with_lapack():
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        A = rng.normal(size=(3, 3)) * rng.choice([1e-3, 1.0, 300.0], size=(3, 3))  # homography-like scales
+        d = np.linalg.det(A)
+        assert det3(A) == pytest.approx(d, rel=1e-12, abs=1e-12 * np.abs(A).max() ** 3)
+        if abs(d) > 1e-6 * np.abs(A).max() ** 3:  # well away from singular
+            np.testing.assert_allclose(inv3(A) @ A, np.eye(3), atol=1e-9)
+        G = sl3_exp(rng.normal(size=8) * 0.3)
+        np.testing.assert_allclose(inv3(G), np.linalg.inv(G), rtol=1e-12, atol=1e-14)
+        assert np.linalg.det(sl3_normalize(5.0 * G)) == pytest.approx(1.0, abs=1e-13)
+    with pytest.raises(ValueError, match="determinant"):
+        sl3_normalize(-np.eye(3))

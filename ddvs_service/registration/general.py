@@ -373,7 +373,7 @@ class GeneralRegistration:
     def _result(
         self, state: _State, iterations: list[int], converged: bool, reason: str, info: F64
     ) -> GeneralResult:
-        checked, reason = with_inliers(converged, reason, state.inlier_ratio, self.config.base)
+        checked, reason = with_inliers(converged, reason, state.inlier_ratio, self.config.base.min_inlier_ratio)
         flags = [FLAG_OCCLUSION] if converged and not checked else []
         converged = checked
         parallax = self._parallax_px(state.G, state.e, state.c)

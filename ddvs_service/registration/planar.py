@@ -17,7 +17,8 @@ pixels covers columns x … x + w − 1 and rows y … y + h − 1.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -108,9 +109,15 @@ class PlanarRegistration:
         self._robust_code = ROBUST_CODES[self.config.robust]
         self._params = np.zeros(PARAMS_GAINS + self.grid[0] * self.grid[1], dtype=np.float32)
         self._work = np.zeros(work_size(self.layout.size), dtype=np.float32)
+        level = self.levels[0]
+        T = level.N @ level.D
+        # the sl(3) generators of level 0's update in full-resolution pixels, T⁻¹ Aᵢ T (`_covariance`)
+        self._generators = np.linalg.inv(T) @ SL3_GENERATORS @ T
         # Each level's kernel is prepared once on the workspace's fixed buffers (`kernels.launch.Prepared`, on first
         # use), so that every later launch skips Taichi's per-call argument set-up.
         self._steps: dict[int, Prepared] = {}
+        self._unknowns: dict[tuple[tuple[int, ...] | None, bool], tuple[NDArray[np.bool_], Any]] = {}
+        self._filled: Level | None = None  # the level whose fixed parameters `_params` holds (`_fill_level`)
 
     @classmethod
     def prepare(
@@ -171,7 +178,8 @@ class PlanarRegistration:
                              f"{self.shape[1]}×{self.shape[0]}")
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         G = np.eye(3) if G0 is None else sl3_normalize(np.asarray(G0, dtype=np.float64).reshape(3, 3))
-        gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
+        gains = np.empty(self.grid)
+        gains[...] = gains0  # a scalar or the grid's node values, copied
         state = _State(G=G, gains=gains, beta=float(beta0), scale=scale0,
                        scale_cap=float("inf") if scale_cap is None else float(scale_cap))
         pyramid = self.load_current(cur, len(levels))
@@ -195,8 +203,7 @@ class PlanarRegistration:
                                lambda: self._solve_level(level, state, tolerance))
 
         outcome = coarse_to_fine(levels, solve)
-        config = self.config if min_inlier_ratio is None else replace(self.config, min_inlier_ratio=min_inlier_ratio)
-        converged, reason = with_inliers(outcome.converged, outcome.reason, state.inlier_ratio, config)
+        converged, reason = with_inliers(outcome.converged, outcome.reason, state.inlier_ratio, needed)
         return RegistrationResult(
             G=state.G, S=state.gains.copy(), beta=state.beta, iterations=outcome.iterations,
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio, converged=converged, reason=reason,
@@ -213,16 +220,29 @@ class PlanarRegistration:
             inverse = np.linalg.inv(state.information)[self.layout.slice("G"), self.layout.slice("G")]
         except np.linalg.LinAlgError:
             return None
-        level = self.levels[0]
-        T = level.N @ level.D
-        T_inv = np.linalg.inv(T)
         J = np.zeros((12, 8))  # e ≡ 0 is not estimated: its rows stay zero
-        J[:9] = np.stack([(state.G @ T_inv @ A @ T).reshape(9) for A in SL3_GENERATORS], axis=1)
+        J[:9] = (state.G @ self._generators).reshape(8, 9).T
         return state.scale**2 * (J @ inverse @ J.T)
 
     def load_current(self, cur: F32, n_levels: int) -> list[F32]:
         """The first `n_levels` levels of `cur`'s pyramid in the workspace's buffers (`CurrentPyramid.load`)."""
         return self.current.load(cur, n_levels)
+
+    def unknowns(self, geometric: tuple[int, ...] | None, photometric: bool) -> tuple[NDArray[np.bool_], Any]:
+        """The mask of the unknowns a level solves (`_PlanarLevel`: the sl(3) coordinates `geometric`, all when None,
+        and the photometric ones when `photometric`) and its `np.ix_` index of `H`'s rows and columns (None when
+        every unknown is free); built once per combination, read-only."""
+        key = (geometric, photometric)
+        if key not in self._unknowns:
+            layout = self.layout
+            free = np.zeros(layout.size, dtype=bool)
+            sl_G = layout.slice("G")
+            sl3 = np.arange(sl_G.start, sl_G.stop)
+            free[sl3 if geometric is None else sl3[list(geometric)]] = True
+            free[layout.slice("S")] = free[layout.slice("beta")] = photometric
+            free.setflags(write=False)
+            self._unknowns[key] = (free, None if free.all() else np.ix_(free, free))
+        return self._unknowns[key]
 
     def _step(self, index: int) -> Prepared:
         """`kernels.planar_step` bound to level `index`'s reference and current buffers and this engine's parameter
@@ -235,7 +255,11 @@ class PlanarRegistration:
         return self._steps[index]
 
     def _fill_level(self, level: Level) -> None:
-        """The parameters fixed at one level: normalisation, ROI bounds, gain-grid span, band count."""
+        """The parameters fixed at one level: normalisation, ROI bounds, gain-grid span, band count (written only
+        when another level's are there: a tracked frame solves the same level frame after frame)."""
+        if level is self._filled:
+            return
+        self._filled = level
         p = self._params
         p[PARAMS_NORM : PARAMS_NORM + 3] = level.norm
         p[PARAMS_ROI : PARAMS_ROI + 4] = level.bounds
@@ -302,11 +326,7 @@ class _PlanarLevel:
         self.engine, self.level, self.state = engine, level, state
         layout = engine.layout
         self._sl_G, self._sl_S, self._sl_b = layout.slice("G"), layout.slice("S"), layout.slice("beta")
-        self.free = np.zeros(layout.size, dtype=bool)
-        sl3 = np.arange(self._sl_G.start, self._sl_G.stop)
-        self.free[sl3 if geometric is None else sl3[list(geometric)]] = True
-        self.free[self._sl_S] = self.free[self._sl_b] = photometric
-        self._subset = None if self.free.all() else np.ix_(self.free, self.free)
+        self.free, self._subset = engine.unknowns(geometric, photometric)
         self.G_l = level.D @ state.G @ level.D_inv
         self.corners = project(self.G_l, level.corners)
         engine._fill_level(level)

@@ -219,11 +219,11 @@ def coarse_to_fine(levels: Sequence[L], solve: Callable[[L], LevelOutcome]) -> O
     return Outcome(iterations, outcome.converged, outcome.reason, outcome.failed)
 
 
-def with_inliers(converged: bool, reason: str, inlier_ratio: float, config: RegistrationConfig) -> tuple[bool, str]:
+def with_inliers(converged: bool, reason: str, inlier_ratio: float, min_inlier_ratio: float) -> tuple[bool, str]:
     """The verdict once the inlier ratio is checked: a converged solve with fewer than `min_inlier_ratio` of the
     ROI's pixels within 4.685 σ is not converged."""
-    if converged and inlier_ratio < config.min_inlier_ratio:
-        return False, f"inlier ratio {inlier_ratio:.3f} below min_inlier_ratio {config.min_inlier_ratio}"
+    if converged and inlier_ratio < min_inlier_ratio:
+        return False, f"inlier ratio {inlier_ratio:.3f} below min_inlier_ratio {min_inlier_ratio}"
     return converged, reason
 
 

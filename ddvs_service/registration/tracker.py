@@ -19,10 +19,12 @@ is reported with `converged = False` and the reason. `track` never raises and ne
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ddvs_service.lie import sl3_normalize
+from ddvs_service.lie import det3, inv3, sl3_normalize
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.integrity import Integrity
 from ddvs_service.registration.planar import PlanarRegistration
@@ -111,8 +113,9 @@ class Tracker:
         """Start of the next frame: `_G` itself, or its constant-velocity extrapolation (module docstring)."""
         if self._G_before is None or not self._problem.config.predict_motion:
             return self._G
-        G = self._G @ np.linalg.solve(self._G_before, self._G)
-        return sl3_normalize(G) if np.all(np.isfinite(G)) and np.linalg.det(G) > 0.0 else self._G
+        G = self._G @ (inv3(self._G_before) @ self._G)
+        d = det3(G)
+        return G / np.cbrt(d) if math.isfinite(d) and d > 0.0 and np.all(np.isfinite(G)) else self._G
 
     def _failure(self, reason: str) -> RegistrationResult:
         self._G_before = None
