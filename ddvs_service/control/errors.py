@@ -79,15 +79,31 @@ def rotation_vector_dvs(H: ArrayLike) -> F64:
 def dvs_error(G: ArrayLike, e: ArrayLike, rho: float, K: ArrayLike, m_star: ArrayLike) -> F64:
     """(7) full DVS error `ε = [(H − I) m*' + ρ* e'; θ μ]` (6-vector), with (8)–(11)."""
     H, e_n = _normalised(G, e, K)
-    eps_v = _translation(H, e_n, _scalar(rho, "rho"), _vector3(m_star, "m_star"))
-    return np.concatenate([eps_v, rotation_vector_dvs(H)])
+    return dvs_error_normalised(H, e_n, _scalar(rho, "rho"), _vector3(m_star, "m_star"))
 
 
 def reduced_error(G: ArrayLike, e: ArrayLike, rho: float, K: ArrayLike, m_star: ArrayLike) -> F64:
     """(13) reduced DVS error `ε' = [(H − I) m*' + ρ* e'; vex(H − Hᵀ)]` (6-vector); `ε'_ω ≈ 2 θ μ` near 0."""
     H, e_n = _normalised(G, e, K)
-    eps_v = _translation(H, e_n, _scalar(rho, "rho"), _vector3(m_star, "m_star"))
-    return np.concatenate([eps_v, vex(H - H.T)])
+    return reduced_error_normalised(H, e_n, _scalar(rho, "rho"), _vector3(m_star, "m_star"))
+
+
+def dvs_error_normalised(H: F64, e_n: F64, rho: float, m_star: F64) -> F64:
+    """`dvs_error` from the normalised homography `H = K⁻¹ G K` (3×3) and epipole `e' = K⁻¹ e` (3), not validated
+    (`ControlLaw`'s per-frame path, which validates only an error that came out non-finite)."""
+    return np.concatenate([_translation(H, e_n, rho, m_star), rotation_vector_dvs(H)])
+
+
+def reduced_error_normalised(H: F64, e_n: F64, rho: float, m_star: F64) -> F64:
+    """`reduced_error` from the normalised `H` and `e'`, not validated (as `dvs_error_normalised`)."""
+    return np.concatenate([_translation(H, e_n, rho, m_star), vex(H - H.T)])
+
+
+def check_inputs(G: ArrayLike, e: ArrayLike, rho: float) -> None:
+    """Raise ValueError naming the first of `G` (finite 3×3), `e` (finite 3-vector) and `rho` (finite) that is not."""
+    _matrix3(G, "G")
+    _vector3(e, "e")
+    _scalar(rho, "rho")
 
 
 def decoupling_matrix(m_star: ArrayLike, c_star: ArrayLike) -> F64:

@@ -14,7 +14,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.control.errors import decoupling_matrix, dvs_error, reduced_error
+from ddvs_service.control.errors import (
+    check_inputs,
+    decoupling_matrix,
+    dvs_error_normalised,
+    reduced_error_normalised,
+)
 from ddvs_service.control.stability import LAWS, check_configuration
 
 F64 = NDArray[np.float64]
@@ -98,21 +103,30 @@ class ControlLaw:
         self.gains = np.asarray(config.gain_vector, dtype=np.float64)
         check_configuration(config.law, self.gains, self.m_star, self.c_star, config.q_star, config.z_star)
         self._M = decoupling_matrix(self.m_star, self.c_star)  # (15), constant
+        self._K_inv = np.asarray(np.linalg.inv(self.K), dtype=np.float64)  # (8), constant
 
     def error(self, G: ArrayLike, e: ArrayLike, rho: float) -> F64:
-        """The configured law's error: (7), (13) or (16), 6-vector."""
+        """The configured law's error: (7), (13) or (16), 6-vector. Raises `ValueError` on non-finite inputs, naming
+        them (the inputs are checked only when the error came out non-finite: this runs on every frame)."""
+        H = self._K_inv @ np.asarray(G, dtype=np.float64) @ self.K  # (8)
+        e_n = self._K_inv @ np.asarray(e, dtype=np.float64)
         if self.config.law == "dvs":
-            return dvs_error(G, e, rho, self.K, self.m_star)
-        if self.config.law == "dvs_reduced":
-            return reduced_error(G, e, rho, self.K, self.m_star)
-        return self._M @ reduced_error(G, e, rho, self.K, self.m_star)  # (14)/(16): decoupled_error, M kept
+            err = dvs_error_normalised(H, e_n, rho, self.m_star)
+        else:
+            err = reduced_error_normalised(H, e_n, rho, self.m_star)
+            if self.config.law == "ddvs":
+                err = self._M @ err  # (14)/(16): decoupled_error, M kept
+        if not np.all(np.isfinite(err)):
+            check_inputs(G, e, rho)
+            raise ValueError(f"control error is not finite ({err}); check G={G!r}, e={e!r}")
+        return err
 
     def compute(self, G: ArrayLike, e: ArrayLike, rho_at_control_point: float) -> ControlOutput:
         """Twist for the estimate `G` (SL(3), pixels), epipole `e` (pixels, homogeneous) and parallax `ρ*` of the
         control point. Raises `ValueError` on non-finite inputs; never returns a non-finite twist."""
         err = self.error(G, e, rho_at_control_point)
         norm = float(np.linalg.norm(err))
-        if not np.isfinite(norm):
+        if not math.isfinite(norm):  # finite entries whose squares overflow
             raise ValueError(f"control error is not finite ({err}); check G={G!r}, e={e!r}")
         if norm < self.config.stop_threshold:
             return ControlOutput(np.zeros(6), err, norm, True, False)
