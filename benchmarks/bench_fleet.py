@@ -21,7 +21,8 @@ how many robots publish within 5 ms of one another (`crowd`: each plant keeps it
 its start gave it hold for the whole run, and the frames that meet there wait for each other once every period).
 `--trace`: the plants also read their robots' status and the row says what became of each frame not answered
 (`missed`, `missed_kinds`: superseded in the inbox, twist withheld as stale, lost before the service, twist lost)
-and where the answered frames' time went (`parts_ms_mean`: outside the service, queued in its inbox, its work).
+and where the answered frames' time went (`parts_ms_mean`: outside the service, queued in its inbox, its work, and
+the service's CPU time over that work).
 
     .venv/bin/python benchmarks/bench_fleet.py [--robots 1 2 4 8 16] [--modes shared separate] [--seconds 30]
                                                [--service-shm on|off] [--realtime-priority P] [--trace]
@@ -246,10 +247,12 @@ def frame_trace(stamps: list[int], measured: list[int], arrivals: dict[int, int]
 def split_latency(latency_ms: float, service: dict[str, float]) -> list[float]:
     """A frame's latency in four parts (ms): `outside` (its stamp → the service's callback, and twist out → the
     plant's callback: transport and the two processes' wake-ups), `queued` (in the service's inbox: behind other
-    robots' frames, and the loop's hand-off), `work` (decode, registration, control, twist out) and the latency."""
+    robots' frames, and the loop's hand-off), `work` (decode, registration, control, twist out) and the latency;
+    then `work_cpu`, the service process's CPU time over that work (`Latency.cpu`: a `work` much longer is time the
+    host ran other processes instead of the service)."""
     work = service["decode"] + service["registration"] + service["control"] + service["publish"]
     return [round(latency_ms - service["total"], 3), round(service["total"] - work, 3), round(work, 3),
-            round(latency_ms, 3)]
+            round(latency_ms, 3), round(service.get("cpu", float("nan")), 3)]
 
 
 # --- the measuring parent ---------------------------------------------------------------------------------------
@@ -405,12 +408,12 @@ def traced_summary(results: list[dict[str, Any]]) -> dict[str, Any]:
     if not all("missed" in r for r in results):
         return {}
     missed = [{"robot": r["robot"], **m} for r in results for m in r["missed"]]
-    parts = np.array([p for r in results for p in r["parts_ms"]] or [[np.nan] * 4])
+    parts = np.array([p for r in results for p in r["parts_ms"]] or [[np.nan] * 5])
     slow = parts[parts[:, 3] > SLOW_MS]
 
     def mean_parts(rows: np.ndarray) -> dict[str, float | None]:
         return {name: round(float(rows[:, i].mean()), 2) if len(rows) else None
-                for i, name in enumerate(("outside", "queued", "work", "latency"))}
+                for i, name in enumerate(("outside", "queued", "work", "latency", "work_cpu"))}
 
     return {"missed": missed, "missed_kinds": {kind: sum(m["kind"] == kind for m in missed)
                                                for kind in ("superseded", "stale", "lost", "twist_lost")},

@@ -238,7 +238,8 @@ def test_state_transitions_and_twists(served: tuple[Service, Operator, ServiceCo
     twist = op.twists[-1]
     assert np.all(np.isfinite(twist)) and np.linalg.norm(twist) > 0
     lat = status["latency_ms"]
-    assert set(lat) == {"decode", "registration", "control", "publish", "total"} and lat["total"] > 0
+    assert set(lat) == {"decode", "registration", "control", "publish", "total", "cpu"} and lat["total"] > 0
+    assert 0 < lat["cpu"] < 10 * lat["total"], lat  # the process's CPU time over the frame's work (several threads)
 
     rng = np.random.default_rng(1)
     status = op.send(rng.integers(0, 256, (H, W), dtype=np.uint8))  # unrelated image → LOST, zero twist

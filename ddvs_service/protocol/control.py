@@ -133,13 +133,16 @@ class Reply(_Message):
 
 
 class Latency(_Message):
-    """Per-frame processing times in milliseconds (`total` from payload arrival to twist published)."""
+    """Per-frame processing times in milliseconds (`total` from payload arrival to twist published), and `cpu`, the
+    service process's CPU time over the frame's work (decode to publish, all its threads): work far longer than
+    `cpu` is time the host did not run the service (other processes on its cores), not work of the service."""
 
     decode: NonNegative
     registration: NonNegative
     control: NonNegative
     publish: NonNegative
     total: NonNegative
+    cpu: NonNegative = 0.0
 
 
 class Counters(_Message):

@@ -243,7 +243,7 @@ class RobotServo:
         if self.pipeline.machine.state == ServoState.IDLE and self._pending_reference is None:
             self.counters["idle"] += 1  # nothing to servo to: no twist, no status
             return
-        t_taken = time.monotonic()
+        t_taken, cpu_taken = time.monotonic(), time.process_time()
         try:
             msg = decode_image(arrival.sample.payload.to_bytes(), max_bytes=self.config.max_frame_bytes)
             image = _grey_view(msg.array, msg.encoding)
@@ -274,6 +274,7 @@ class RobotServo:
             "control": step.timings_ms.get("control", 0.0),
             "publish": (t_done - t_publish) * 1e3,
             "total": (t_done - arrival.t) * 1e3,
+            "cpu": (time.process_time() - cpu_taken) * 1e3,
         }
         self._publish_status(step, msg.header.stamp.to_ns(), latency, stale)
         self._residual.offer(msg.header, lambda: self.pipeline.residual(image))
