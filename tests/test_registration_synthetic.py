@@ -8,7 +8,7 @@ import pytest
 
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.planar import register
-from ddvs_service.registration.solver import remaining_motion
+from ddvs_service.registration.solver import DEGENERATE_RCOND, degeneracy, remaining_motion
 from ddvs_service.registration.tracker import Tracker
 from evaluation.pairs import load
 
@@ -152,3 +152,27 @@ def testremaining_motion_is_the_geometric_tail():
     assert remaining_motion([0.8, 0.2, 0.05]) == pytest.approx(0.05 * 0.25 / 0.75)  # q = max(0.25, 0.25)
     assert remaining_motion([0.8, 0.4, 0.04]) == pytest.approx(0.04 * 0.5 / 0.5)  # the slower contraction wins
     assert remaining_motion([0.1, 0.09, 0.085]) == 0.085  # q ≥ MAX_RATE: not trusted
+
+
+def test_degeneracy_decides_as_the_scaled_eigenvalues_do():
+    """The Cholesky shortcut of `degeneracy` never contradicts the definition (non-positive diagonal, or the
+    diagonally scaled matrix's reciprocal condition number below `DEGENERATE_RCOND`), near the threshold too."""
+    rng = np.random.default_rng(7)
+    n, seen = 13, set()
+    for k in range(3000):
+        Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        eig = np.exp(rng.uniform(-1.0, 1.0, n))
+        eig[0] = 10.0 ** rng.uniform(-11.0, -6.0) * eig.max()  # around the threshold of the scaled matrix
+        scales = 10.0 ** rng.uniform(-3.0, 5.0, n)  # the unknowns' units differ by orders of magnitude
+        H = Q @ np.diag(eig) @ Q.T * np.outer(scales, scales)
+        if k % 100 == 0:
+            H[k % n, k % n] = -1.0
+        d = np.diag(H)
+        scaled = np.linalg.eigvalsh(H / np.sqrt(np.outer(np.abs(d), np.abs(d))))
+        fine = bool(np.all(d > 0) and scaled[0] > DEGENERATE_RCOND * scaled[-1])
+        assert (degeneracy(H) == "") == fine, k
+        seen.add(fine)
+    assert seen == {True, False}
+    infinite = 5.0 * np.eye(n)
+    infinite[0, 0] = np.inf  # factored by numpy without an error: the shortcut must not take it for a fine matrix
+    assert degeneracy(infinite) != ""

@@ -242,7 +242,21 @@ def remaining_motion(steps: list[float]) -> float:
 
 def degeneracy(H: F64) -> str:
     """Why the normal matrix `H` is too ill-conditioned to solve (empty when it is fine): a non-positive diagonal
-    or a reciprocal condition number of the diagonally scaled matrix below `DEGENERATE_RCOND`."""
+    or a reciprocal condition number of the diagonally scaled matrix `S = D^-½ H D^-½` (D = diag H) below
+    `DEGENERATE_RCOND`.
+
+    Most matrices are settled by one Cholesky factorisation (cheaper than the eigenvalues): `S`'s largest
+    eigenvalue is at most its trace n, so when `S − 2n·rcond·I` is positive definite — when `H − 2n·rcond·D` is,
+    the same test by congruence, which Cholesky decides to within a few n·ε of `S`'s smallest eigenvalue, far
+    inside the factor 2 — the reciprocal condition number exceeds `rcond` and the diagonal is positive. Otherwise,
+    and for a matrix with NaN or infinite entries, the eigenvalues decide."""
+    shifted = H.copy()
+    shifted.flat[:: len(H) + 1] *= 1.0 - 2.0 * len(H) * DEGENERATE_RCOND
+    try:  # numpy factors a matrix with NaN or infinite entries without complaint: its factor's diagonal is not finite
+        if math.isfinite(float(np.trace(np.linalg.cholesky(shifted)))):
+            return ""
+    except np.linalg.LinAlgError:
+        pass
     d = np.diag(H)
     if not np.all(d > 0):
         return ": a parameter has no effect on the residuals"
