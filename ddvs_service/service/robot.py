@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -398,25 +399,27 @@ class RobotServo:
 
     # --- outputs ------------------------------------------------------------------------------------------------
     def _publish_twist(self, twist: NDArray[np.float64], stamp: Time, frame_id: str = "camera") -> None:
-        if not np.all(np.isfinite(twist)):
-            log.error("non-finite twist replaced by zero", extra=fields(twist=list(twist)))
-            twist = ZERO6
-        msg = TwistStamped(Header(stamp, frame_id), np.asarray(twist[:3]), np.asarray(twist[3:]))
+        values = twist.tolist()  # plain floats: the checks below run on every frame
+        if not all(map(math.isfinite, values)):
+            log.error("non-finite twist replaced by zero", extra=fields(twist=values))
+            values = [0.0] * 6
+        msg = TwistStamped(Header(stamp, frame_id), np.array(values[:3]), np.array(values[3:]))
         self._pub["servo_twist"].put(encode_twist_stamped(msg))
-        self._zero_sent = not np.any(twist)
+        self._zero_sent = not any(values)
 
     def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool) -> None:
         """The frame's `Status`: every frame with `status_every_frame`, else on a state change or a stale twist."""
         previous = self._last_status.state if self._last_status else None
         changed = previous != step.state.value
         if self.config.status_every_frame or changed or stale:
-            self._emit_status(Status(
-                robot=self.config.robot, state=step.state.value, frame_stamp_ns=stamp_ns, seq=self._next_seq(),
-                error=[float(x) for x in step.error], error_norm=step.error_norm, iterations=step.iterations,
-                residual_rms=step.residual_rms, inlier_ratio=min(max(step.inlier_ratio, 0.0), 1.0),
-                twist=[float(x) for x in step.twist], latency_ms=Latency(**latency), counters=self.current_counters(),
-                message=step.message[:500],
-            ))
+            # one validation of the whole message, the nested latency and counters given as plain dicts
+            self._emit_status(Status.model_validate({
+                "robot": self.config.robot, "state": step.state.value, "frame_stamp_ns": stamp_ns,
+                "seq": self._next_seq(), "error": step.error.tolist(), "error_norm": step.error_norm,
+                "iterations": step.iterations, "residual_rms": step.residual_rms,
+                "inlier_ratio": min(max(step.inlier_ratio, 0.0), 1.0), "twist": step.twist.tolist(),
+                "latency_ms": latency, "counters": self._counts(), "message": step.message[:500],
+            }))
         if changed or self.pipeline.rho_coeffs != self._persisted_rho:
             self._persisted_rho = list(self.pipeline.rho_coeffs)
             self._persist_state()
@@ -445,7 +448,10 @@ class RobotServo:
 
     def current_counters(self) -> Counters:
         """The counters of `Status.counters` now."""
-        return Counters(dropped=self.inbox.frames_superseded, **self.counters)
+        return Counters.model_validate(self._counts())
+
+    def _counts(self) -> dict[str, int]:
+        return {"dropped": self.inbox.frames_superseded, **self.counters}
 
     def _next_seq(self) -> int:
         self._seq += 1
