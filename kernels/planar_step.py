@@ -24,6 +24,7 @@ Parameters come in one float32 array (`PARAMS_*` offsets) and every result goes 
 """
 
 
+import functools
 import warnings
 
 import taichi as ti
@@ -165,6 +166,19 @@ def _moment_index(p: int, q: int) -> int:
     return MOMENT_OFFSET[B_GY[p] + B_GY[q]] + B_POW[p] + B_POW[q]
 
 
+@functools.cache
+def _geometric_entries(n: int) -> tuple[tuple[tuple[int, tuple[tuple[int, int, int], ...]], ...], ...]:
+    """The geometric block of the upper triangle of `JᵀWJ` for `n` unknowns, row `g` by row: each entry `(g, c ≥ g)`
+    as its index and the terms `(i, j, m)` whose `coef[i] · coef[j] · moments[m]` it sums (`accumulate_row`:
+    `C (Σ w b bᵀ) Cᵀ` over the pairs of `C_SPARSE[g]` and `C_SPARSE[c]`). Tabulated in Python so that Taichi's front
+    end, which unrolls these sums at every compile (every start, offline cache or not), walks one statement per term
+    and calls no function there."""
+    return tuple(tuple((_triangle_index(g, c, n),
+                        tuple((i, j, _moment_index(p, q)) for p, i in C_SPARSE[g] for q, j in C_SPARSE[c]))
+                       for c in range(g, N_GEOMETRIC))
+                 for g in range(N_GEOMETRIC))
+
+
 @ti.func
 def triangle_index(e: ti.i32, f: ti.i32, n: ti.template()) -> ti.i32:
     """`_triangle_index` at run time."""
@@ -192,13 +206,12 @@ def accumulate_row(acc: ti.template(), moments, cross_c, photo_c, photo_cb, cros
     NT = ti.static(P * (P + 1) // 2)
     si = 1.0 / s
     coef = ti.Vector([s, -dv, 1.0, 3.0 * dv, 3.0, dv, -dv * si, -si, -dv * dv * si])
-    for g in ti.static(range(N_GEOMETRIC)):
-        for c in ti.static(range(g, N_GEOMETRIC)):
+    for g, entries in ti.static(enumerate(_geometric_entries(P))):
+        for t, terms in ti.static(entries):
             total = 0.0
-            for p, i in ti.static(C_SPARSE[g]):
-                for q, j in ti.static(C_SPARSE[c]):
-                    total += coef[i] * coef[j] * moments[ti.static(_moment_index(p, q))]
-            acc[ti.static(_triangle_index(g, c, P))] += total
+            for i, j, m in ti.static(terms):
+                total += coef[i] * coef[j] * moments[m]
+            acc[t] += total
         bias_total = 0.0
         g_total = 0.0
         for p, i in ti.static(C_SPARSE[g]):
@@ -275,30 +288,36 @@ def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: 
 @ti.func
 def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
     """Serial tail of a step kernel: add the `nb` band partials (float64) into `work[:nacc]`, then write the median
-    of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`."""
+    of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`.
+
+    Band by band over each band's contiguous partials, into local sums: every sum adds the bands in band order, as
+    a loop over the bands per entry would, but LLVM compiles these loops to a fraction of the machine code of
+    per-entry loops over a run-time number of bands (each vectorised with its run-time checks and remainders), a
+    first launch's code generation on every start."""
     hist0 = ti.static(nacc * (1 + MAX_BANDS))
     ti.loop_config(serialize=True)
     for _ in range(1):
+        total = ti.Vector([0.0] * nacc, ti.f64)
+        count = ti.Vector([0.0] * HIST_BINS, ti.f32)
+        for b in range(nb):
+            for k in range(nacc):
+                total[k] += ti.cast(work[(1 + b) * nacc + k], ti.f64)
+            for k in range(HIST_BINS):
+                count[k] += work[hist0 + b * HIST_BINS + k]
         for k in range(nacc):
-            total = ti.cast(0.0, ti.f64)
-            for b in range(nb):
-                total += ti.cast(work[(1 + b) * nacc + k], ti.f64)
-            work[k] = ti.cast(total, ti.f32)
+            work[k] = ti.cast(total[k], ti.f32)
         counted = 0.0
-        for k in range(HIST_BINS * nb):
-            counted += work[hist0 + k]
+        for k in range(HIST_BINS):
+            counted += count[k]
         half = 0.5 * counted
         cum = 0.0
         median = 0.0
         found = 0
         for k in range(HIST_BINS):
-            count = 0.0
-            for b in range(nb):
-                count += work[hist0 + b * HIST_BINS + k]
-            if found == 0 and count > 0.0 and cum + count >= half:
-                median = hist_value(k, (half - cum) / count)
+            if found == 0 and count[k] > 0.0 and cum + count[k] >= half:
+                median = hist_value(k, (half - cum) / count[k])
                 found = 1
-            cum += count
+            cum += count[k]
         work[nacc - 1] = median
 
 
@@ -381,12 +400,14 @@ def planar_step(
     for it in range(nb * 512):
         if it % 512 == 0:
             b = it // 512
-            hist = ti.Vector.zero(ti.f32, HIST_BINS)  # a local array: its stores alias no ndarray
+            # Local arrays (their stores alias no ndarray), zeroed as `ti.Vector([0.0] * n)`: `ti.Vector.zero` is a
+            # Taichi function whose list comprehension the front end walks element by element at every start.
+            hist = ti.Vector([0.0] * HIST_BINS, ti.f32)
             rows = v1 - v0 + 1
             first = v0 + b * rows // nb
             last = v0 + (b + 1) * rows // nb  # exclusive
-            acc = ti.Vector.zero(ti.f32, NACC)
-            buf = ti.Vector.zero(ti.f32, 3 * TILE_STRIDE)  # rows v − 1, v, v + 1 of the warped current image
+            acc = ti.Vector([0.0] * NACC, ti.f32)
+            buf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # rows v − 1, v, v + 1 of the warped current image
             for tile in range((u1 - u0 + TILE) // TILE):
                 ut0 = u0 + tile * TILE
                 ut1 = ti.min(ut0 + TILE - 1, u1)
