@@ -40,6 +40,15 @@ def test_nan_pixels_are_refused():
         register(IMG, bad, roi=ROI)
 
 
+def test_an_integer_frame_registers_as_its_float32_copy():
+    """`run` takes a camera's uint8 frame without a float32 copy of its own (`images.checked_image`): the workspace's
+    copy converts it, with the same result as the converted frame."""
+    cur = np.clip(np.rint(shifted(1.5, -0.7)), 0, 255).astype(np.uint8)
+    as_is, converted = (register(IMG, frame, roi=ROI) for frame in (cur, cur.astype(np.float32)))
+    assert as_is.converged and np.array_equal(as_is.G, converted.G)
+    assert as_is.iterations == converted.iterations
+
+
 def test_config_values_are_validated():
     with pytest.raises(ValueError, match="gain_grid"):
         RegistrationConfig(gain_grid=(0, 2))

@@ -7,6 +7,8 @@ Level-l pixel coordinates relate to full-resolution ones by `p_l = D_l p_0` with
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -26,11 +28,20 @@ def to_grey(image: ArrayLike) -> F32:
 
 def checked_grey(image: ArrayLike, name: str) -> F32:
     """`image` as a contiguous float32 2-D array; refuses colour, tiny, NaN or infinite images with a clear error."""
+    return np.ascontiguousarray(checked_image(image, name), dtype=np.float32)
+
+
+def checked_image(image: ArrayLike, name: str) -> NDArray[Any]:
+    """`checked_grey`'s checks without its copy: an integer image (a camera's uint8 frame) as it is — finite by its
+    type, not scanned, and converted to float32 by whoever copies it (`reference.CurrentPyramid.load`, in the same
+    pass) — any other as float32 (scanned for NaN and infinities after the conversion, which can overflow)."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError(f"{name} must be a 2-D grey image, got shape {img.shape} (convert colour with to_grey)")
     if img.shape[0] < 8 or img.shape[1] < 8:
         raise ValueError(f"{name} is {img.shape[1]}×{img.shape[0]} pixels, expected at least 8×8")
+    if img.dtype.kind in "biu":
+        return img
     out = np.ascontiguousarray(img, dtype=np.float32)
     if not np.isfinite(out).all():
         bad = int((~np.isfinite(out)).sum())

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from ddvs_service.lie import SL3_GENERATORS, sl3_exp, sl3_normalize
 from ddvs_service.registration.coarse_search import coarse_alignment, usable_pixels
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
-from ddvs_service.registration.images import F32, checked_grey
+from ddvs_service.registration.images import F32, checked_image
 from ddvs_service.registration.layout import ParamLayout
 from ddvs_service.registration.reference import CurrentPyramid, Level, PreparedReference, Roi
 from ddvs_service.registration.result import RegistrationResult
@@ -172,7 +172,7 @@ class PlanarRegistration:
         the inlier ratio the result needs).
         `min_inlier_ratio`: the inlier ratio this call's result needs (`config.min_inlier_ratio` by default; a
         tracker lowers it while an occluder slides over the template, `integrity.Integrity.inlier_floor`)."""
-        cur = checked_grey(current, "current")
+        cur = checked_image(current, "current")
         if cur.shape != self.shape:
             raise ValueError(f"current image is {cur.shape[1]}×{cur.shape[0]}, expected the reference's "
                              f"{self.shape[1]}×{self.shape[0]}")
@@ -224,7 +224,7 @@ class PlanarRegistration:
         J[:9] = (state.G @ self._generators).reshape(8, 9).T
         return state.scale**2 * (J @ inverse @ J.T)
 
-    def load_current(self, cur: F32, n_levels: int) -> list[F32]:
+    def load_current(self, cur: NDArray[Any], n_levels: int) -> list[F32]:
         """The first `n_levels` levels of `cur`'s pyramid in the workspace's buffers (`CurrentPyramid.load`)."""
         return self.current.load(cur, n_levels)
 

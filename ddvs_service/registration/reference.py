@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -123,10 +124,11 @@ class CurrentPyramid:
         self._downsamples: dict[int, Prepared] = {}
         self._linearise: Prepared | None = None
 
-    def load(self, cur: F32, n_levels: int) -> list[F32]:
-        """Copy `cur` (checked, reference-sized float32) into the level-0 buffer, linearise it there when the
-        reference's `config.gamma` ≠ 1 (`images.irradiance`; the reference's defocus is not applied to the current
-        image) and downsample it into the next `n_levels − 1` buffers (`images.build_pyramid`'s filter)."""
+    def load(self, cur: NDArray[Any], n_levels: int) -> list[F32]:
+        """Copy `cur` (checked, reference-sized; float32, or integers that the copy converts:
+        `images.checked_image`) into the level-0 buffer, linearise it there when the reference's `config.gamma` ≠ 1
+        (`images.irradiance`; the reference's defocus is not applied to the current image) and downsample it into the
+        next `n_levels − 1` buffers (`images.build_pyramid`'s filter)."""
         from kernels.image_formation import linearise
         from kernels.pyramid import downsample2
 

@@ -16,6 +16,7 @@ estimator's parallax `ρ*` lives in the reference frame: `rho_coeffs` can be per
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -133,7 +134,7 @@ class PlanarEstimator:
         s = self.settings
         return residual_image(self.reference, grey, self.roi, self._tracker.G, gains, beta, s.gamma, s.defocus_px)
 
-    def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
+    def estimate(self, grey: NDArray[Any], control_px: tuple[float, float]) -> Estimate:
         message, result = "", None
         G_before = self._tracker.G
         if self._needs_init and self._acquire.enabled:
@@ -253,7 +254,7 @@ class GeneralEstimator:
         """Not available for the general model yet (its warp has the parallax term of eq. (2), not `G` alone)."""
         return None
 
-    def estimate(self, grey: NDArray[np.float32], control_px: tuple[float, float]) -> Estimate:
+    def estimate(self, grey: NDArray[Any], control_px: tuple[float, float]) -> Estimate:
         adopted = self._search.adopted
         result = self._tracker.track(grey)
         tracked = _accepted(result)

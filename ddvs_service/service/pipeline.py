@@ -193,7 +193,10 @@ class ServoPipeline:
         """Register `frame` (grey or colour, same size as the reference) and compute the twist of this period."""
         if self._estimator is None or self._law is None or self.reference is None:
             return StepResult(ZERO6, ZERO6, 0.0, self.machine.state, 0, 0.0, 0.0, "no reference")
-        grey = to_grey(frame)
+        # a grey frame goes on as it came (a camera's uint8): the engine converts it to float32 in the pass that
+        # copies it into its workspace (`registration.images.checked_image`)
+        frame = np.asarray(frame)
+        grey = frame if frame.ndim == 2 else to_grey(frame)
         if grey.shape != self.reference.shape:
             raise ValueError(f"frame is {grey.shape[1]}×{grey.shape[0]}; the reference is "
                              f"{self.reference.shape[1]}×{self.reference.shape[0]}")
