@@ -40,7 +40,6 @@ def main() -> None:
     import argparse
     import json
 
-    os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")  # as `ddvs` does first (cli.skip_pydantic_plugins)
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.session import session_config_from_args

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 from collections.abc import Sequence
 
@@ -51,15 +50,7 @@ def requested_command(argv: Sequence[str]) -> str | None:
     return next((word for word in argv if not word.startswith("-")), None)
 
 
-def skip_pydantic_plugins() -> None:
-    """Tell pydantic not to look for plugins: it reads the entry points of every installed distribution when the
-    first model is built, on every start (a cost that grows with the environment; docs/performance.md, Start-up),
-    and no ddvs tool uses one. `PYDANTIC_DISABLE_PLUGINS` set beforehand wins (set empty: plugins load)."""
-    os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    skip_pydantic_plugins()  # before a subcommand's module imports pydantic's models
     words = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(requested_command(words))
     args = parser.parse_args(words)
