@@ -116,7 +116,7 @@ class ControlLaw:
             err = reduced_error_normalised(H, e_n, rho, self.m_star)
             if self.config.law == "ddvs":
                 err = self._M @ err  # (14)/(16): decoupled_error, M kept
-        if not np.all(np.isfinite(err)):
+        if not np.isfinite(err).all():
             check_inputs(G, e, rho)
             raise ValueError(f"control error is not finite ({err}); check G={G!r}, e={e!r}")
         return err
@@ -125,7 +125,7 @@ class ControlLaw:
         """Twist for the estimate `G` (SL(3), pixels), epipole `e` (pixels, homogeneous) and parallax `ρ*` of the
         control point. Raises `ValueError` on non-finite inputs; never returns a non-finite twist."""
         err = self.error(G, e, rho_at_control_point)
-        norm = float(np.linalg.norm(err))
+        norm = math.sqrt(err.dot(err))  # np.linalg.norm's arithmetic without its wrapper (every frame)
         if not math.isfinite(norm):  # finite entries whose squares overflow
             raise ValueError(f"control error is not finite ({err}); check G={G!r}, e={e!r}")
         if norm < self.config.stop_threshold:
@@ -133,7 +133,7 @@ class ControlLaw:
         twist = self.gains * err
         scale = min(
             1.0,
-            self.config.max_linear / max(float(np.linalg.norm(twist[:3])), 1e-300),
-            self.config.max_angular / max(float(np.linalg.norm(twist[3:])), 1e-300),
+            self.config.max_linear / max(math.sqrt(twist[:3].dot(twist[:3])), 1e-300),
+            self.config.max_angular / max(math.sqrt(twist[3:].dot(twist[3:])), 1e-300),
         )
         return ControlOutput(twist * scale, err, norm, False, scale < 1.0)

@@ -277,7 +277,7 @@ class TwistStamped:
     def __post_init__(self) -> None:
         self.linear = _float_array("TwistStamped.linear", self.linear, 3)
         self.angular = _float_array("TwistStamped.angular", self.angular, 3)
-        if not (np.all(np.isfinite(self.linear)) and np.all(np.isfinite(self.angular))):
+        if not (np.isfinite(self.linear).all() and np.isfinite(self.angular).all()):
             raise InconsistentMessage(
                 f"TwistStamped has non-finite values (linear {self.linear.tolist()}, angular {self.angular.tolist()})"
             )
@@ -427,7 +427,7 @@ def encode_twist_stamped(msg: TwistStamped) -> bytes:
     """CDR payload of a `geometry_msgs/TwistStamped`."""
     w = CdrWriter()
     _write_header(w, msg.header)
-    w.float64_array((*msg.linear, *msg.angular), length=6)  # linear then angular, one aligned block
+    w.float64_array(np.concatenate((msg.linear, msg.angular)), length=6)  # linear then angular, one aligned block
     return w.finish()
 
 

@@ -47,6 +47,7 @@ so the scale of a good fit, is the same), and so does the last accepted frame's 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 from statistics import NormalDist, median
@@ -138,7 +139,7 @@ class Integrity:
         of the next frame."""
         self._support = inlier_ratio
         scale = inlier_scale(frame_scale, inlier_ratio)
-        if inlier_ratio > MEASURED_SUPPORT and np.isfinite(scale) and scale > 0.0:
+        if inlier_ratio > MEASURED_SUPPORT and math.isfinite(scale) and scale > 0.0:
             self._scales.append(scale)
             if len(self._scales) >= self.config.min_frames:
                 self._anchor = max(median(self._scales), self.config.min_anchor)
@@ -153,7 +154,7 @@ def inlier_scale(frame_scale: float, inlier_ratio: float) -> float:
     """The scale of a frame's inliers (grey levels) from its robust scale `1.4826 · median |r|` over every pixel and
     the fraction `inlier_ratio` within the cut-off: the overall median is the `q = 0.5 / inlier_ratio` quantile of
     the inliers' |r| (Gaussian: `σ Φ⁻¹((1 + q) / 2)`), so `σ = frame_scale · Φ⁻¹(0.75) / Φ⁻¹((1 + q) / 2)`."""
-    if not (np.isfinite(frame_scale) and 0.0 < inlier_ratio <= 1.0):
+    if not (math.isfinite(frame_scale) and 0.0 < inlier_ratio <= 1.0):
         return frame_scale
     q = min(0.5 / inlier_ratio, MAX_QUANTILE)
     return float(frame_scale * _HALF_NORMAL_MEDIAN / NormalDist().inv_cdf(0.5 + 0.5 * q))

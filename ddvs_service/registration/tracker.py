@@ -92,7 +92,7 @@ class Tracker:
                                            scale0=None, tolerance_px=tolerance, give_up=True)
         except Exception as exc:  # the tracker's contract: report, never raise
             return self._failure(f"error: {type(exc).__name__}: {exc}")
-        if not np.all(np.isfinite(result.G)):
+        if not np.isfinite(result.G).all():
             return self._failure(f"non-finite estimate ({result.reason})")
         if result.converged:
             implausible = self._integrity.judge(start, result.G, result.scale, result.inlier_ratio)
@@ -115,7 +115,7 @@ class Tracker:
             return self._G
         G = self._G @ (inv3(self._G_before) @ self._G)
         d = det3(G)
-        return G / np.cbrt(d) if math.isfinite(d) and d > 0.0 and np.all(np.isfinite(G)) else self._G
+        return G / np.cbrt(d) if math.isfinite(d) and d > 0.0 and np.isfinite(G).all() else self._G
 
     def _failure(self, reason: str) -> RegistrationResult:
         self._G_before = None

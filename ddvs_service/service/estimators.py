@@ -15,6 +15,7 @@ estimator's parallax `ρ*` lives in the reference frame: `rho_coeffs` can be per
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -330,4 +331,4 @@ def _accepted(result: RegistrationResult) -> bool:
 
 
 def _finite(x: float) -> float:
-    return float(x) if np.isfinite(x) else 0.0
+    return float(x) if math.isfinite(x) else 0.0

@@ -13,6 +13,7 @@ wandering with the image noise does not do for long. The service applies it only
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,7 +42,7 @@ class ErrorGuard:
         self._trusted, self._run = None, []
 
     def _near(self, error: F64, anchor: F64) -> bool:
-        return bool(np.linalg.norm(error - anchor) <= self.jump_abs + self.jump_rel * np.linalg.norm(anchor))
+        return _norm(error - anchor) <= self.jump_abs + self.jump_rel * _norm(anchor)
 
     def check(self, error: F64) -> str:
         """Why `error` (of a tracked frame) is not to be acted on ("" when it is; it then becomes the trusted one)."""
@@ -49,7 +50,7 @@ class ErrorGuard:
         if self._trusted is None or self._near(error, self._trusted):
             self._trusted, self._run = error, []
             return ""
-        agrees = bool(self._run) and np.linalg.norm(error - self._run[-1]) <= self.jump_abs
+        agrees = bool(self._run) and _norm(error - self._run[-1]) <= self.jump_abs
         self._run = [*self._run, error] if agrees else [error]
         if len(self._run) >= self.rebase_frames:
             self._trusted, self._run = error, []
@@ -58,3 +59,8 @@ class ErrorGuard:
         return (f"suspect fit: the control error jumped by {jump:.3g} from the last trusted one (norm "
                 f"{np.linalg.norm(self._trusted):.3g}; at most {self.jump_abs:g} + {self.jump_rel:g}× its norm "
                 f"between frames); {len(self._run)}/{self.rebase_frames} consistent frames to adopt it")
+
+
+def _norm(v: F64) -> float:
+    """‖v‖ as `np.linalg.norm` computes it (√(v·v)), without its wrapper: the guard runs on every frame."""
+    return math.sqrt(v.dot(v))

@@ -11,6 +11,7 @@ camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOI
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -227,7 +228,7 @@ class ServoPipeline:
         t2 = time.perf_counter()
         return StepResult(
             twist=np.asarray(twist, dtype=np.float64), error=np.asarray(error, dtype=np.float64),
-            error_norm=0.0 if not np.isfinite(norm) else norm, state=state, iterations=est.iterations,
+            error_norm=norm if math.isfinite(norm) else 0.0, state=state, iterations=est.iterations,
             residual_rms=est.residual_rms, inlier_ratio=est.inlier_ratio, message=est.message,
             timings_ms={"registration": (t1 - t0) * 1e3, "control": (t2 - t1) * 1e3},
         )

@@ -58,13 +58,23 @@ class _Sums:
         self.covariance = np.zeros((12, 12))
         self.unknown = 0
 
-    def update(self, sign: float, error: F64, covariance: F64 | None) -> None:
-        self.error += sign * error
-        self.square += sign * float(error @ error)
+    def add(self, error: F64, square: float, covariance: F64 | None) -> None:
+        """A frame enters the window: its error, ‖error‖² and covariance (None: unknown)."""
+        self.error += error
+        self.square += square
         if covariance is None:
-            self.unknown += int(sign)
+            self.unknown += 1
         else:
-            self.covariance += sign * covariance
+            self.covariance += covariance
+
+    def remove(self, error: F64, square: float, covariance: F64 | None) -> None:
+        """A frame leaves the window (what `add` was given for it)."""
+        self.error -= error
+        self.square -= square
+        if covariance is None:
+            self.unknown -= 1
+        else:
+            self.covariance -= covariance
 
     def mean_and_scatter(self) -> tuple[float, float]:
         """‖mean‖ and the RMS deviation from the mean of the window's errors (full window)."""
@@ -92,6 +102,7 @@ class SettleWindow:
         self.settle_frames, self.noise_frames = settle_frames, noise_frames
         length = max(settle_frames, noise_frames)
         self._errors = np.zeros((length, 6))
+        self._squares = [0.0] * length  # ‖ε̄_k‖², computed once per frame
         self._covariances: list[F64 | None] = [None] * length
         self._short, self._long = _Sums(settle_frames), _Sums(noise_frames)
         self.clear()
@@ -116,12 +127,14 @@ class SettleWindow:
             return NOT_SETTLED
         length = len(self._errors)
         error = np.asarray(error, dtype=np.float64)
+        square = float(error @ error)
         for sums in (self._short, self._long):
             if self._count >= sums.length:  # the frame `sums.length` frames ago leaves that window
                 old = (self._next - sums.length) % length
-                sums.update(-1.0, self._errors[old], self._covariances[old])
-            sums.update(1.0, error, covariance)
+                sums.remove(self._errors[old], self._squares[old], self._covariances[old])
+            sums.add(error, square, covariance)
         self._errors[self._next], self._covariances[self._next] = error, covariance
+        self._squares[self._next] = square
         self._next = (self._next + 1) % length
         self._count = min(self._count + 1, length)
         short_norm, scatter = self._short.mean_and_scatter() if self._count >= self.settle_frames else (
