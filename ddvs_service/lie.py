@@ -146,7 +146,9 @@ def expm(A: ArrayLike) -> F64:
     identity = np.eye(A.shape[0])
     E = identity.copy()
     for k in range(_taylor_terms(norm * 0.5**s), 0, -1):
-        E = identity + (X @ E) / k
+        E = X @ E
+        E /= k
+        E += identity
     for _ in range(s):
         E = E @ E
     return E

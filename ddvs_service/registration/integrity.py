@@ -145,7 +145,8 @@ class Integrity:
                 self._anchor = max(median(self._scales), self.config.min_anchor)
 
 
-_HALF_NORMAL_MEDIAN = NormalDist().inv_cdf(0.75)  # median of |N(0, 1)|: 1 / 1.4826
+_STANDARD_NORMAL = NormalDist()
+_HALF_NORMAL_MEDIAN = _STANDARD_NORMAL.inv_cdf(0.75)  # median of |N(0, 1)|: 1 / 1.4826
 MAX_QUANTILE = 0.95  # the correction stops at half the pixels beyond the cut-off (an outlier share ≥ 47 %)
 MEASURED_SUPPORT = 0.5 / MAX_QUANTILE  # from this inlier ratio down the median |r| does not measure the inliers
 
@@ -157,10 +158,11 @@ def inlier_scale(frame_scale: float, inlier_ratio: float) -> float:
     if not (math.isfinite(frame_scale) and 0.0 < inlier_ratio <= 1.0):
         return frame_scale
     q = min(0.5 / inlier_ratio, MAX_QUANTILE)
-    return float(frame_scale * _HALF_NORMAL_MEDIAN / NormalDist().inv_cdf(0.5 + 0.5 * q))
+    return float(frame_scale * _HALF_NORMAL_MEDIAN / _STANDARD_NORMAL.inv_cdf(0.5 + 0.5 * q))
 
 
 def corner_distance(A: F64, B: F64, corners: F64) -> float:
     """Largest distance (pixels) between the images of the homogeneous `corners` (3×n) under `A` and under `B`."""
     a, b = A @ corners, B @ corners
-    return float(np.max(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)))
+    d = a[:2] / a[2] - b[:2] / b[2]
+    return float(np.sqrt(np.add.reduce(d * d, axis=0)).max())  # np.linalg.norm(d, axis=0)'s arithmetic

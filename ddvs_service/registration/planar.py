@@ -73,6 +73,17 @@ class _State:
     information: F64 | None = None  # JᵀWJ of the last full-resolution evaluation over all the unknowns
 
 
+def in_level(level: Level, G: F64) -> F64:
+    """`G` (full-resolution pixels) in level pixels, `D G D⁻¹`; `G` itself at level 0, where `D` is the identity
+    (`images.level_matrix`: no product to pay on every tracked frame, which solves level 0 only)."""
+    return G if level.index == 0 else level.D @ G @ level.D_inv
+
+
+def in_full_resolution(level: Level, G_l: F64) -> F64:
+    """The inverse of `in_level`: `D⁻¹ G_l D`, `G_l` itself at level 0."""
+    return G_l if level.index == 0 else level.D_inv @ G_l @ level.D
+
+
 def project(G: F64, pts: F64) -> F64:
     """Dehomogenised `G · pts` for homogeneous points `pts` (3, n) and one warp `G` (3, 3) → (2, n), or a stack of
     warps (K, 3, 3) → (K, 2, n)."""
@@ -285,7 +296,7 @@ class PlanarRegistration:
         state.gains[:] = 1.0
         state.beta = 0.0
         self._fill_level(level)
-        self._fill_state(level.D @ state.G @ level.D_inv, state)
+        self._fill_state(in_level(level, state.G), state)
         u0, v0, u1, v1 = level.bounds
         warped = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
         render_compensated(cur, self._params, warped, self.grid[0], self.grid[1])
@@ -311,7 +322,7 @@ class PlanarRegistration:
         model = _PlanarLevel(self, level, state, geometric, photometric)
         outcome = gauss_newton(model, state, self.config, level.index, level.n_pixels, level.size, tolerance,
                                give_up_below)
-        state.G = sl3_normalize(level.D_inv @ model.G_l @ level.D)
+        state.G = sl3_normalize(in_full_resolution(level, model.G_l))
         return outcome
 
 
@@ -327,7 +338,7 @@ class _PlanarLevel:
         layout = engine.layout
         self._sl_G, self._sl_S, self._sl_b = layout.slice("G"), layout.slice("S"), layout.slice("beta")
         self.free, self._subset = engine.unknowns(geometric, photometric)
-        self.G_l = level.D @ state.G @ level.D_inv
+        self.G_l = in_level(level, state.G)
         self.corners = project(self.G_l, level.corners)
         engine._fill_level(level)
         self._launch = engine._step(level.index)
