@@ -134,11 +134,23 @@ class CdrReader:
         self._pos += -self._pos % n
 
     def _take(self, n: int, what: str) -> memoryview:
-        if n > self.remaining:
-            raise TruncatedMessage(f"{what}: needs {n} bytes at offset {self._pos}, only {max(self.remaining, 0)} left")
-        out = self._view[self._pos : self._pos + n]
-        self._pos += n
-        return out
+        pos = self._pos
+        if pos + n > len(self._view):
+            raise TruncatedMessage(f"{what}: needs {n} bytes at offset {pos}, only {max(self.remaining, 0)} left")
+        self._pos = pos + n
+        return self._view[pos : pos + n]
+
+    def _primitive(self, fmt: struct.Struct, what: str) -> int | float:
+        """One primitive of `fmt.size` bytes after its alignment padding (`_align` and `_take` in one step: a frame
+        header is a dozen of them)."""
+        n = fmt.size
+        pos = self._pos + (-self._pos % n)
+        if pos + n > len(self._view):
+            self._pos = pos
+            raise TruncatedMessage(f"{what}: needs {n} bytes at offset {pos}, only {max(self.remaining, 0)} left")
+        self._pos = pos + n
+        value: int | float = fmt.unpack_from(self._view, pos)[0]
+        return value
 
     def check_length(self, count: int, item_size: int, what: str) -> None:
         """Reject a count of items of (at least) `item_size` bytes before anything is allocated from it."""
@@ -156,16 +168,13 @@ class CdrReader:
         return self.uint8(what) != 0
 
     def uint32(self, what: str) -> int:
-        self._align(4)
-        return int(_U32.unpack(self._take(4, what))[0])
+        return int(self._primitive(_U32, what))
 
     def int32(self, what: str) -> int:
-        self._align(4)
-        return int(_I32.unpack(self._take(4, what))[0])
+        return int(self._primitive(_I32, what))
 
     def float64(self, what: str) -> float:
-        self._align(8)
-        return float(_F64.unpack(self._take(8, what))[0])
+        return float(self._primitive(_F64, what))
 
     def string(self, what: str) -> str:
         """Length 0 reads as "", a missing NUL terminator keeps every byte, invalid UTF-8 becomes U+FFFD — what
