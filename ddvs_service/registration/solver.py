@@ -54,7 +54,7 @@ class NormalEquations:
         statistics; `symmetric` is `symmetric_index(n)`."""
         acc = accumulator.astype(np.float64)
         nt = n * (n + 1) // 2
-        n_valid, n_inliers, sum_r2, median = acc[nt + n : nt + n + 4]
+        n_valid, n_inliers, sum_r2, median = acc[nt + n : nt + n + 4].tolist()  # plain floats: scalar arithmetic
         return cls(acc[symmetric], acc[nt : nt + n], n_valid, n_inliers, sum_r2, median)
 
 
@@ -192,7 +192,7 @@ def bounded_gains(gains: F64, step: F64, config: RegistrationConfig) -> F64:
     lowest gain (e.g. one under an occluder, whose pixels the robust weights mostly reject) stays there while the
     geometry and the other nodes are solved again at the next iteration."""
     low, high = config.gain_range
-    return cast(F64, np.clip(gains + np.reshape(step, gains.shape), low, high))
+    return np.minimum(np.maximum(gains + np.reshape(step, gains.shape), low), high)  # np.clip without its wrappers
 
 
 def in_sequence(*phases: Callable[[], LevelOutcome]) -> LevelOutcome:
