@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.control.errors import dvs_error, reduced_error
+from ddvs_service.control.errors import dvs_error, reduced_error, vex_antisymmetric
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.control.stability import UnstableConfigurationError
-from ddvs_service.lie import pose, so3_exp, so3_log
+from ddvs_service.lie import pose, so3_exp, so3_log, vex
 from sim.ground_truth import ground_truth
 from sim.surfaces import paper_saddle
 
@@ -116,3 +116,10 @@ def test_dvs_rotational_error_is_the_rotation_vector(angle: float) -> None:
     gt = truth([0.0, 0.0, 0.0], angle * axis)
     eps = dvs_error(gt.G, gt.e, gt.rho, INTR.K, [0.0, 0.0, 1.0])
     np.testing.assert_allclose(eps[3:], so3_log(gt.T_cur_ref[:3, :3]), atol=1e-9)
+
+
+def test_vex_antisymmetric_is_vex_of_the_difference_bit_for_bit():
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        H = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-8.0, 3.0, size=(3, 3))
+        assert np.array_equal(vex_antisymmetric(H), vex(H - H.T))

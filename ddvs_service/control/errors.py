@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ddvs_service.lie import skew, vex
+from ddvs_service.lie import skew
 
 F64 = NDArray[np.float64]
 
@@ -53,6 +53,18 @@ def _translation(H: F64, e_n: F64, rho: float, m_star: F64) -> F64:
     return H @ m_star - m_star + rho * e_n
 
 
+_LOWER = [7, 2, 3]  # H21, H02, H10 in a row-major 3×3
+_UPPER = [5, 6, 1]  # H12, H20, H01
+
+
+def vex_antisymmetric(H: F64) -> F64:
+    """`vex(H − Hᵀ)` of a 3×3 `H`: `[H21 − H12, H02 − H20, H10 − H01]`, bit for bit (each entry of `H − Hᵀ` is
+    a rounded difference d and its mirror exactly −d, so `½ (d − (−d))` is d), in two numpy operations instead of
+    a dozen: the reduced and decoupled errors take it on every frame."""
+    flat = np.ascontiguousarray(H).reshape(9)
+    return flat[_LOWER] - flat[_UPPER]
+
+
 def translation_error(H: ArrayLike, e_n: ArrayLike, rho: float, m_star: ArrayLike) -> F64:
     """Translational error of (7)/(13): `ε_v = (H − I) m*' + ρ* e'` with `e' = K⁻¹ e` the normalised epipole.
 
@@ -67,7 +79,7 @@ def rotation_vector_dvs(H: ArrayLike) -> F64:
 
     For a rotation `H = R` this is the rotation vector of `R` (radians)."""
     H = _matrix3(H, "H")
-    r = 0.5 * vex(H - H.T)
+    r = 0.5 * vex_antisymmetric(H)
     norm = float(np.linalg.norm(r))
     theta = float(np.arcsin(min(norm, 1.0)))
     if np.trace(H) < 1.0:
@@ -96,7 +108,7 @@ def dvs_error_normalised(H: F64, e_n: F64, rho: float, m_star: F64) -> F64:
 
 def reduced_error_normalised(H: F64, e_n: F64, rho: float, m_star: F64) -> F64:
     """`reduced_error` from the normalised `H` and `e'`, not validated (as `dvs_error_normalised`)."""
-    return np.concatenate([_translation(H, e_n, rho, m_star), vex(H - H.T)])
+    return np.concatenate([_translation(H, e_n, rho, m_star), vex_antisymmetric(H)])
 
 
 def check_inputs(G: ArrayLike, e: ArrayLike, rho: float) -> None:
