@@ -12,6 +12,7 @@ Conventions (shared by the whole project):
 from __future__ import annotations
 
 import bisect
+import functools
 import math
 
 import numpy as np
@@ -134,6 +135,14 @@ def _taylor_terms(norm: float) -> int:
     return bisect.bisect_left(_TAYLOR_LIMITS, norm)
 
 
+@functools.lru_cache(maxsize=8)
+def _identity(n: int) -> F64:
+    """`np.eye(n)`, read-only, made once per size (`np.eye` costs more than a 3×3 product)."""
+    identity = np.eye(n)
+    identity.setflags(write=False)
+    return identity
+
+
 def expm(A: ArrayLike) -> F64:
     """Matrix exponential of a small square matrix: scaling and squaring (the scaled matrix has ‖X‖₁ ≤ 0.5) with a
     Taylor series truncated where the next term is below the double-precision roundoff (at most degree 12; a
@@ -143,7 +152,7 @@ def expm(A: ArrayLike) -> F64:
     norm = float(np.abs(A).sum(axis=0).max())
     s = max(0, math.ceil(math.log2(norm)) + 1) if norm > 0.5 else 0
     X = A * 0.5**s
-    identity = np.eye(A.shape[0])
+    identity = _identity(A.shape[0])
     E = identity.copy()
     for k in range(_taylor_terms(norm * 0.5**s), 0, -1):
         E = X @ E

@@ -18,6 +18,7 @@ by a step. Each iteration (eq. (5), robust ESM):
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -250,8 +251,7 @@ def degeneracy(H: F64) -> str:
     the same test by congruence, which Cholesky decides to within a few n·ε of `S`'s smallest eigenvalue, far
     inside the factor 2 — the reciprocal condition number exceeds `rcond` and the diagonal is positive. Otherwise,
     and for a matrix with NaN or infinite entries, the eigenvalues decide."""
-    shifted = H.copy()
-    shifted.flat[:: len(H) + 1] *= 1.0 - 2.0 * len(H) * DEGENERATE_RCOND
+    shifted = H * _diagonal_shift(len(H))
     try:  # numpy factors a matrix with NaN or infinite entries without complaint: its factor's diagonal is not finite
         if math.isfinite(float(np.trace(np.linalg.cholesky(shifted)))):
             return ""
@@ -264,3 +264,12 @@ def degeneracy(H: F64) -> str:
     if not eig[0] > DEGENERATE_RCOND * eig[-1]:
         return f": reciprocal condition {eig[0] / eig[-1]:.1e}"
     return ""
+
+
+@functools.lru_cache(maxsize=8)
+def _diagonal_shift(n: int) -> F64:
+    """`degeneracy`'s multiplier (read-only, one per size): 1 off the diagonal, 1 − 2n·rcond on it."""
+    factors = np.ones((n, n))
+    factors.flat[:: n + 1] = 1.0 - 2.0 * n * DEGENERATE_RCOND
+    factors.setflags(write=False)
+    return factors
