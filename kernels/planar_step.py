@@ -290,22 +290,23 @@ def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
     """Serial tail of a step kernel: add the `nb` band partials (float64) into `work[:nacc]`, then write the median
     of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`.
 
-    Band by band over each band's contiguous partials, into local sums: every sum adds the bands in band order, as
-    a loop over the bands per entry would, but LLVM compiles these loops to a fraction of the machine code of
-    per-entry loops over a run-time number of bands (each vectorised with its run-time checks and remainders), a
-    first launch's code generation on every start."""
+    The histograms are added band by band over each band's contiguous bins into local counts (integers: any order
+    gives the same counts): LLVM compiles that to a fraction of the machine code of a loop over a run-time number of
+    bands per bin (vectorised with its run-time checks and remainders), a first launch's code generation on every
+    start. The sums keep their loop over the bands per entry: a local float64 array of all `nacc` sums instead made
+    Taichi's IR passes, and so a cold compile, grow with the grid (benchmarks/README.md, start-up)."""
     hist0 = ti.static(nacc * (1 + MAX_BANDS))
     ti.loop_config(serialize=True)
     for _ in range(1):
-        total = ti.Vector([0.0] * nacc, ti.f64)
+        for k in range(nacc):
+            total = ti.cast(0.0, ti.f64)
+            for b in range(nb):
+                total += ti.cast(work[(1 + b) * nacc + k], ti.f64)
+            work[k] = ti.cast(total, ti.f32)
         count = ti.Vector([0.0] * HIST_BINS, ti.f32)
         for b in range(nb):
-            for k in range(nacc):
-                total[k] += ti.cast(work[(1 + b) * nacc + k], ti.f64)
             for k in range(HIST_BINS):
                 count[k] += work[hist0 + b * HIST_BINS + k]
-        for k in range(nacc):
-            work[k] = ti.cast(total[k], ti.f32)
         counted = 0.0
         for k in range(HIST_BINS):
             counted += count[k]
