@@ -3,7 +3,8 @@
 
 - `planar`: `kernels.planar_step` (the planar model's step).
 - `general`: the four `kernels.general_step` specialisations the general model's frame path launches (ρ* columns
-  or not × Keys or B-spline sampling), degree `--degree` of ρ*; the times are their sum.
+  or not × Keys or B-spline sampling), degree `--degree` of ρ*; the times are their sum. Each launch runs under the
+  module's `compile_settings` (Taichi's settings the registration compiles it with), as the registration does.
 
 Each measurement runs in its own process; the cache directory is chosen through Taichi's
 `TI_OFFLINE_CACHE_FILE_PATH`, so nobody else's cache is touched. Besides wall time each row gives the process CPU
@@ -16,12 +17,17 @@ runtime start (≈ 0.1 s).
 
 `--general-module FILE` measures another version of `kernels/general_step.py` (e.g. `git show
 REV:kernels/general_step.py > /tmp/general_step_before.py`) in place of this tree's, for before/after rows in one
-run; the `general` rows then name the file.
+run; the `general` rows then name the file. `--compare FILE` instead runs this tree's `general_step` and FILE's in
+one process on the same inputs: how far their normal equations differ and their launch times, interleaved.
+
+    .venv/bin/python benchmarks/bench_compile.py --compare FILE [--grids …] [--degree 3] [--reps 200] [--markdown]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import importlib.util
 import json
 import os
@@ -31,6 +37,8 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -76,11 +84,20 @@ def planar_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[],
 def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[], None]]:
     """The four `general_step` specialisations of the general frame path on the same pair, ρ* of `degree`
     non-zero; the last one is the tracking launch (no ρ* columns, B-spline sampling)."""
+    cases = general_cases(_general_module(os.environ.get(MODULE_ENV)), rows, cols, degree)
+    return {name: launch for name, (launch, _sums, _n) in cases.items()}
+
+
+Case = tuple[Callable[[], None], Any, int]  # (launch, the sums it writes, number of columns)
+
+
+def general_cases(gs: ModuleType, rows: int, cols: int, degree: int) -> dict[str, Case]:
+    """`general_launches` of the module `gs`, each with the float32 array its launch writes the normal equations
+    to and its number of columns `n`: the packed `JᵀWJ` upper triangle, `JᵀWr` and statistics (`gs.n_acc(n)`)."""
     import numpy as np
 
     from ddvs_service.registration.general_basis import ParallaxBasis
 
-    gs = _general_module(os.environ.get(MODULE_ENV))
     ref, cur = _images()
     u0, v0, u1, v1 = ROI
     basis = ParallaxBasis.over((u0, v0, u1 - u0 + 1, v1 - v0 + 1), degree)
@@ -98,13 +115,21 @@ def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[]
     params[gs.PARAMS_RHO:gs.PARAMS_RHO + n_mono] = basis.monomial_coefficients(np.full(basis.size, 0.3))
     for i, row in enumerate(basis.B):
         params[gs.PARAMS_BASIS + i * gs.MAX_MONOMIALS:gs.PARAMS_BASIS + i * gs.MAX_MONOMIALS + n_mono] = row
-    launches = {}
+    cases: dict[str, Case] = {}
     for with_rho, spline in ((True, False), (True, True), (False, False), (False, True)):
-        work = np.zeros(gs.work_size(gs.n_columns(basis.size, with_rho, rows, cols)), dtype=np.float32)
+        n = gs.n_columns(basis.size, with_rho, rows, cols)
+        work = np.zeros(gs.work_size(n), dtype=np.float32)
         name = f"general_step rho={int(with_rho)} spline={int(spline)}"
-        launches[name] = (lambda work=work, flags=(with_rho, rows, cols, spline):
-                          gs.general_step(ref, cur, params, work, degree, basis.size, *flags))
-    return launches
+        cases[name] = (functools.partial(_launch_general, gs, ref, cur, params, work, degree, basis.size, with_rho,
+                                         rows, cols, spline), work[:gs.n_acc(n)], n)
+    return cases
+
+
+def _launch_general(gs: ModuleType, *args: object) -> None:
+    """`gs.general_step(*args)` under the module's `compile_settings` (what the registration compiles it with), or
+    plainly where an older module has none."""
+    with getattr(gs, "compile_settings", contextlib.nullcontext)():
+        gs.general_step(*args)
 
 
 def _general_module(path: str | None):
@@ -122,6 +147,51 @@ def _general_module(path: str | None):
 
 
 PATHS = {"planar": planar_launches, "general": general_launches}
+
+
+def compare(before: str, rows: int, cols: int, degree: int, reps: int) -> list[dict[str, object]]:
+    """This process: this tree's `general_step` and the module at `before`, each specialisation compiled once (each
+    under its own module's settings), then `reps` launches of both in turn. Per specialisation: how far the normal
+    equations differ (`JᵀWJ` entries over `sqrt(H_ii H_jj)`, `JᵀWr` over its largest entry) and the median launch
+    times."""
+    import numpy as np
+
+    from kernels import general_step
+    from kernels.backend import init
+
+    init()
+    after = general_cases(general_step, rows, cols, degree)
+    old = general_cases(_general_module(before), rows, cols, degree)
+    out = []
+    for name, (launch, sums, n) in after.items():
+        launch_old, sums_old, _n = old[name]
+        launch_old()
+        launch()
+        nt = n * (n + 1) // 2
+        upper = np.triu_indices(n)
+        scale = np.sqrt(np.abs(np.diag(_unpacked(sums_old[:nt], n))))
+        hess = float(np.max(np.abs(sums[:nt] - sums_old[:nt]) / np.maximum(np.outer(scale, scale)[upper], 1e-30)))
+        grad_old = sums_old[nt:nt + n]
+        grad = float(np.max(np.abs(sums[nt:nt + n] - grad_old)) / max(float(np.max(np.abs(grad_old))), 1e-30))
+        times: dict[str, list[float]] = {"before": [], "after": []}
+        for _ in range(reps):
+            for key, run in (("before", launch_old), ("after", launch)):
+                t0 = time.perf_counter()
+                run()
+                times[key].append(time.perf_counter() - t0)
+        ms_old, ms_new = (1e3 * float(np.median(times[k])) for k in ("before", "after"))
+        out.append({"grid": f"{rows}×{cols}", "degree": degree, "kernel": name, "hess": hess, "grad": grad,
+                    "before_ms": ms_old, "after_ms": ms_new, "load_average": round(os.getloadavg()[0], 2)})
+    return out
+
+
+def _unpacked(triangle: Any, n: int) -> Any:
+    """The symmetric `n × n` matrix whose row-major upper triangle is `triangle`."""
+    import numpy as np
+
+    full = np.zeros((n, n))
+    full[np.triu_indices(n)] = triangle
+    return full + np.triu(full, 1).T
 
 
 def first_launches(path: str, rows: int, cols: int, degree: int) -> dict[str, object]:
@@ -169,14 +239,27 @@ def main() -> None:
     parser.add_argument("--grids", nargs="+", default=["1x1", "2x2", "3x3", "4x4", "1x4", "4x1"])
     parser.add_argument("--degree", type=int, default=2, choices=[2, 3], help="degree of ρ* (general path)")
     parser.add_argument("--general-module", metavar="FILE", help="another general_step module to measure")
+    parser.add_argument("--compare", metavar="FILE", help="this tree's general_step against FILE's, in one process")
+    parser.add_argument("--reps", type=int, default=200, help="interleaved launches of each (--compare)")
     parser.add_argument("--markdown", action="store_true")
     args = parser.parse_args()
     if args.child:
         path, rows, cols, degree = args.child
         print(json.dumps(first_launches(path, int(rows), int(cols), int(degree))))
         return
-    rows = [measure(path, *(int(n) for n in grid.split("x")), args.degree, args.general_module) for path in args.paths
-            for grid in args.grids]
+    grids = [tuple(int(n) for n in grid.split("x")) for grid in args.grids]
+    if args.compare:
+        compared = [r for grid_rows, grid_cols in grids
+                    for r in compare(args.compare, grid_rows, grid_cols, args.degree, args.reps)]
+        print_rows(compared, args.markdown,
+                   ["gain grid", "ρ* degree", "kernel", "JᵀWJ difference", "JᵀWr difference",
+                    "launch before / after", "ratio", "load"],
+                   lambda r: [r["grid"], str(r["degree"]), r["kernel"], f"{r['hess']:.1e}", f"{r['grad']:.1e}",
+                              f"{r['before_ms']:.3f} / {r['after_ms']:.3f} ms",
+                              f"{r['after_ms'] / r['before_ms']:.2f}", f"{r['load_average']:.2f}"])
+        return
+    rows = [measure(path, grid_rows, grid_cols, args.degree, args.general_module) for path in args.paths
+            for grid_rows, grid_cols in grids]
     print_rows(rows, args.markdown,
                ["path", "gain grid", "first launches, cold cache: wall / CPU", "each kernel, cold: CPU",
                 "first launches, warm cache: wall / CPU", "launch afterwards", "load"],
