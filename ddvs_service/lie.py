@@ -151,7 +151,7 @@ def expm(A: ArrayLike) -> F64:
     A = np.asarray(A, dtype=np.float64)
     norm = float(np.abs(A).sum(axis=0).max())
     s = max(0, math.ceil(math.log2(norm)) + 1) if norm > 0.5 else 0
-    X = A * 0.5**s
+    X = A * 0.5**s if s else A  # (A · 1 is A)
     identity = _identity(A.shape[0])
     E = identity.copy()
     for k in range(_taylor_terms(norm * 0.5**s), 0, -1):

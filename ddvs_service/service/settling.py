@@ -44,12 +44,13 @@ def error_jacobian(law: ControlLaw, G: F64, e: F64, rho: float) -> F64:
 
 
 class _Sums:
-    """Running sums over the newest `length` frames of a `SettleWindow`'s buffers: Σε̄_k, Σ‖ε̄_k‖², ΣΣ_k and the
-    number of frames whose covariance is unknown (a frame costs one add and one subtract, not a pass over the
-    window; the rounding they accumulate, ~1e-14 per frame on errors of norm ≤ 2, stays far below the thresholds)."""
+    """Running sums over the newest `length` frames of a `SettleWindow`'s buffers: Σε̄_k, Σ‖ε̄_k‖², and with
+    `covariances` ΣΣ_k and the number of frames whose covariance is unknown (only the long window's figures use them)
+    (a frame costs one add and one subtract, not a pass over the window; the rounding they accumulate, ~1e-14 per
+    frame on errors of norm ≤ 2, stays far below the thresholds)."""
 
-    def __init__(self, length: int) -> None:
-        self.length = length
+    def __init__(self, length: int, covariances: bool) -> None:
+        self.length, self.covariances = length, covariances
         self.clear()
 
     def clear(self) -> None:
@@ -62,6 +63,8 @@ class _Sums:
         """A frame enters the window: its error, ‖error‖² and covariance (None: unknown)."""
         self.error += error
         self.square += square
+        if not self.covariances:
+            return
         if covariance is None:
             self.unknown += 1
         else:
@@ -71,6 +74,8 @@ class _Sums:
         """A frame leaves the window (what `add` was given for it)."""
         self.error -= error
         self.square -= square
+        if not self.covariances:
+            return
         if covariance is None:
             self.unknown -= 1
         else:
@@ -104,7 +109,7 @@ class SettleWindow:
         self._errors = np.zeros((length, 6))
         self._squares = [0.0] * length  # ‖ε̄_k‖², computed once per frame
         self._covariances: list[F64 | None] = [None] * length
-        self._short, self._long = _Sums(settle_frames), _Sums(noise_frames)
+        self._short, self._long = _Sums(settle_frames, covariances=False), _Sums(noise_frames, covariances=True)
         self.clear()
 
     def clear(self) -> None:
