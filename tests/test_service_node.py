@@ -321,12 +321,12 @@ def test_restart_resumes_persisted_state(tmp_path: Path) -> None:
         assert op.send(shifted(img, 5.0, 3.0))["state"] == "SERVOING"
     with running_service(config, tmp_path, port) as (_, op):
         snapshot = op.command(op="get_state").data
-        assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING"
+        assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "LOST"  # until confirmed
         assert op.command(op="get_config").data["control"]["gains"] == 0.3
-        status = op.send(shifted(img, 5.0, 3.0))  # answered at once: the global initialiser searches beside the loop
-        assert status["state"] == "LOST" and "searching in the background" in status["message"], status
+        status = op.send(shifted(img, 5.0, 3.0))  # tracked from the persisted estimate, held still: not confirmed yet
+        assert status["state"] == "LOST" and "from the last good estimate" in status["message"], status
         assert not np.any(op.twists[-1])
-        status, _ = past_lost(op, shifted(img, 5.0, 3.0))  # until the search's pose is adopted
+        status, _ = past_lost(op, shifted(img, 5.0, 3.0))  # until `confirm_frames` tracked frames confirm it
         assert status["state"] == "SERVOING", status
 
 

@@ -5,9 +5,11 @@ of the given file plus the changes made at run time, with `config.json` in the s
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import free_port
 from test_service_node import F, H, Operator, Service, W, past_lost, running_service, scene, service_config, shifted
 
@@ -40,8 +42,9 @@ def test_restart_resumes_without_camera_info(tmp_path: Path) -> None:
         assert op.send(shifted(img, 5.0, 3.0))["state"] == "SERVOING"
     with running_service(config, tmp_path, port) as (_, op):
         snapshot = op.command(op="get_state").data
-        assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "SERVOING", snapshot
-        status, _ = past_lost(op, shifted(img, 5.0, 3.0))  # the first frame's search runs beside the loop
+        # resumed LOST (zero twist) until its first tracked frames confirm the persisted estimate
+        assert snapshot is not None and snapshot["has_reference"] and snapshot["state"] == "LOST", snapshot
+        status, _ = past_lost(op, shifted(img, 5.0, 3.0))
         assert status["state"] == "SERVOING", status
 
 
@@ -144,3 +147,35 @@ def test_an_unusable_persisted_estimate_is_dropped_and_the_first_frame_initialis
     assert "persisted last good estimate not usable" in log
     warmed = [json.loads(line) for line in log.splitlines() if '"kernels warmed up"' in line]
     assert [w["initialiser"] for w in warmed] == [True], log[-3000:]
+
+
+def test_a_frame_sent_during_the_warm_up_is_the_first_answered_and_tracked_from_the_persisted_estimate(
+        tmp_path: Path) -> None:
+    """Restarted, the service subscribes to its camera before its warm-up and declares everything else after it:
+    a frame published once the subscription matched, while the service does not answer yet, is the first frame it
+    serves. That frame is registered at once from the persisted last good estimate (on the loop thread, not handed
+    to the background search), and is the first of `confirm_frames` tracked frames the servo holds still for."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    img, view = scene(), shifted(scene(), 5.0, 3.0)
+    _servo_until_tracked(config, tmp_path, port, img, view)
+    service = Service(config, tmp_path)
+    op = Operator(port)
+    try:
+        deadline = time.monotonic() + 60.0
+        while not op.frames.matching_status.matching:
+            assert service.proc.poll() is None and time.monotonic() < deadline, "the camera was never subscribed"
+            time.sleep(0.005)
+        with pytest.raises(AssertionError, match="no reply"):  # nothing answers yet: the warm-up runs
+            op.command(op="get_state", timeout=0.05)
+        first = op.send(view)  # waits in the inbox until the loop starts
+        assert first["frame_stamp_ns"] == 33_000_000, first
+        assert first["state"] == "LOST" and not np.any(op.twists[-1]), first
+        assert first["message"] == "re-acquired by tracking from the last good estimate", first
+        states = [op.send(view)["state"] for _ in range(2)]
+        assert states == ["LOST", "SERVOING"], states  # the third tracked frame confirms (`confirm_frames` 3)
+        assert np.any(op.twists[-1])
+    finally:
+        code, _ = service.stop()
+        op.close()
+    assert code == 0

@@ -41,6 +41,22 @@ def test_full_cycle_with_hysteresis() -> None:
         sm.stop()
 
 
+def test_a_resumed_servo_holds_still_until_its_first_frames_confirm_the_estimate() -> None:
+    """A restart resumes an active servo LOST: its first tracked frames are confirmation frames, even when the first
+    one is already tracked (from the persisted estimate) and even if it had converged before."""
+    sm = machine()
+    with pytest.raises(TransitionError, match="no reference"):
+        sm.resume()
+    sm.reference_set()
+    sm.start()
+    sm.on_frame(FrameOutcome(True, 5e-4))
+    assert sm.state == ServoState.CONVERGED
+    assert sm.resume() == ServoState.LOST and not sm.moves
+    for _ in range(sm.confirm_frames - 1):
+        assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.LOST and not sm.moves
+    assert sm.on_frame(FrameOutcome(True, 0.2)) == ServoState.SERVOING and sm.moves
+
+
 def test_thresholds_validated() -> None:
     with pytest.raises(ValueError, match="stop_threshold < resume_threshold"):
         StateMachine(stop_threshold=1e-2, resume_threshold=1e-3)

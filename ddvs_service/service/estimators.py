@@ -8,7 +8,8 @@ on a worker thread (`service.reacquirer`) on engines of its own (workspaces over
 frame that needs it costs the loop no more than a tracked one: it is answered untracked while the worker searches,
 and the worker's pose is adopted on a later frame only if the tracker, started from it, registers that newest frame.
 The worker's search also makes the attempt from the last good estimate first (a failing one costs a whole
-registration budget), so the loop's only registration of a LOST spell is the failing one that discovers the loss.
+registration budget), so the loop's only registration of a LOST spell is the failing one that discovers the loss
+(after a restart, the first frame's attempt from the persisted estimate runs on the loop: `PlanarEstimator.resume`).
 Without `background` the search runs within `estimate` (lockstep experiments: the plant waits for it). The general
 estimator's parallax `ρ*` lives in the reference frame: `rho_coeffs` can be persisted and handed back after a restart.
 """
@@ -80,6 +81,7 @@ class PlanarEstimator:
         self._last_good: F64 | None = None  # where a re-acquisition tracks from first (None: nowhere yet)
         self._before: F64 | None = None  # the estimate before the last tracked frame (reverted to by `lose`)
         self._acquired = False  # the estimate descends from a global re-acquisition the guard has not trusted yet
+        self._resumed = False  # `resume`d, no frame since: the next one is tracked from there on this thread first
 
     @property
     def G(self) -> F64:
@@ -102,10 +104,14 @@ class PlanarEstimator:
 
     def resume(self, G: F64) -> None:
         """Take `G` as the last good estimate without trusting it (a restart: an earlier process's last estimate):
-        the next frame is re-acquired from it first, as after a LOST frame, then by the initialiser."""
+        the next frame is re-acquired from it first, then by the initialiser. That first attempt runs within
+        `estimate` even with `background` (a failing one gives up early, `tracking_give_up_iterations`): the view
+        after a restart is usually the one the estimate was made on, and the frame it registers is the first of
+        the state machine's confirmation frames instead of an untracked one."""
         self._tracker.reset(G)
         self._needs_init = True
         self._last_good = self._tracker.G
+        self._resumed = True
 
     def lose(self) -> None:
         """The last tracked frame's fit is suspect (the pipeline's error guard). Tracked on from the tracker's own
@@ -138,14 +144,15 @@ class PlanarEstimator:
     def estimate(self, grey: NDArray[Any], control_px: tuple[float, float]) -> Estimate:
         message, result = "", None
         G_before = self._tracker.G
+        resumed, self._resumed = self._resumed, False
         if self._needs_init and self._acquire.enabled:
             beside = isinstance(self._acquire, BackgroundReacquisition)  # the worker tries the last good itself
-            if self._last_good is not None and not beside:
+            if self._last_good is not None and (resumed or not beside):
                 result = self._tracker.track(grey)
                 if _accepted(result):
                     message = "re-acquired by tracking from the last good estimate"
             if not (result is not None and _accepted(result)):
-                init = self._search(grey)
+                init = self._search(grey, retry=result is None)
                 if init.G is None:  # never track on from an unconfirmed estimate
                     local = "" if result is None else f"tracking from the last good estimate: {result.reason}; "
                     return Estimate(False, self._tracker.G, np.zeros(3), 0.0, 0, 0.0, 0.0,
@@ -170,12 +177,13 @@ class PlanarEstimator:
                         _finite(result.residual_rms), _finite(result.inlier_ratio), message,
                         covariance=result.covariance)
 
-    def _search(self, grey: NDArray[np.float32]) -> Acquisition:
+    def _search(self, grey: NDArray[np.float32], retry: bool) -> Acquisition:
         """The re-acquisition of `grey`; on the worker, from the tracker's state first when there is a last good
-        estimate (its state is that estimate: an untracked frame leaves it unchanged)."""
+        estimate (its state is that estimate: an untracked frame leaves it unchanged) and `retry` (this frame was
+        not tried from there already)."""
         G = self._tracker.G
         if isinstance(self._acquire, BackgroundReacquisition):
-            return self._acquire(grey, G, None if self._last_good is None else G)
+            return self._acquire(grey, G, G if self._last_good is not None and retry else None)
         return self._acquire(grey, G)
 
     def _retry(self, trial: Tracker) -> Retry:

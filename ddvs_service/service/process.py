@@ -21,7 +21,7 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import zenoh
@@ -95,11 +95,18 @@ class ServeProcess:
         return seconds
 
     # --- the loop -----------------------------------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> None:
-        """Serve until `stop` is set. Every robot publishes a zero twist; every Zenoh object is closed."""
+    def run(self, stop: threading.Event, prepare: Callable[[], None] | None = None) -> None:
+        """Serve until `stop` is set. Every robot publishes a zero twist; every Zenoh object is closed. `prepare`
+        (the warm-up) runs once the session is open and the robots subscribed to their cameras, before anything
+        else is declared: nothing is answered and no robot announced before it ends, and the newest frame that
+        arrived meanwhile waits in its robot's inbox for the first turn."""
         warn_if_insecure(self.fleet.base.zenoh, log)
         session = open_session(self.fleet.base.zenoh)
         try:
+            for robot in self.robots.values():
+                robot.listen(session)
+            if prepare is not None:
+                prepare()
             self._serve(session, stop)
         finally:
             session.close()

@@ -1,11 +1,12 @@
 """One robot of a `ddvs serve` process: its keys, pipeline, state machine, persistence, watchdog, status, counters.
 
 `RobotServo` holds everything that belongs to one robot; the process (`service.process`) owns the Zenoh session and
-the loop thread and calls in: `open(session)` declares the robot's subscriptions, queryable, publishers and
-liveliness token, `handle_inputs()` runs its oldest pending command and adopts its newest camera info,
-`handle_frame(arrival)` serves one frame, `watchdog()` zeroes a standing twist when no frame *arrived* within
-`frame_timeout_s` (a slow frame while frames keep arriving is no timeout), `close(reason)` publishes a zero twist
-and undeclares everything. Zenoh callbacks only hand samples to the robot's `Inbox` and wake the loop.
+the loop thread and calls in: `listen(session)` subscribes it to its camera (before the warm-up), `open(session)`
+declares its queryable, publishers and liveliness token, `handle_inputs()` runs its oldest pending command and
+adopts its newest camera info, `handle_frame(arrival)` serves one frame, `watchdog()` zeroes a standing twist when
+no frame *arrived* within `frame_timeout_s` (a slow frame while frames keep arriving is no timeout),
+`close(reason)` publishes a zero twist and undeclares everything. Zenoh callbacks only hand samples to the robot's
+`Inbox` and wake the loop.
 
 Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
 frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the robot keeps running, and
@@ -91,6 +92,7 @@ class RobotServo:
         self._last_status: Status | None = None
         self._persisted_rho: list[float] = []
         self.inbox = Inbox(wakeup=wakeup)
+        self._ends: Endpoints | None = None  # the robot's subscriptions and publishers (`listen`, `open`)
         self._zenoh: _Declared | None = None
         self._restored_reference: _Restored | None = None
         self.writer = BackgroundWriter(self.store)
@@ -143,7 +145,7 @@ class RobotServo:
             log.error("persisted reference not usable", extra=fields(error=str(exc)))
             return
         if self._resume_state in RESUMING_STATES:
-            self.pipeline.machine.start()
+            self.pipeline.machine.resume()
         elif self._resume_state == ServoState.STOPPED:
             self.pipeline.machine.stop()
         log.info("resumed persisted reference", extra=fields(state=self.pipeline.machine.state.value, roi=roi))
@@ -169,13 +171,25 @@ class RobotServo:
     def name(self) -> str:
         return self.config.robot
 
+    def listen(self, session: zenoh.Session) -> None:
+        """Subscribe this robot's inbox to its camera (image and info) on `session`, nothing else: declared before
+        the warm-up, the subscription reaches the camera meanwhile and the newest frame waits in the inbox when the
+        loop starts (`Inbox` keeps the newest one only; no frame is answered before `open`)."""
+        if self._ends is not None:
+            return
+        ends = Endpoints(session, self.keys, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
+        ends.subscriber("camera_image", self.inbox.on_frame)  # `ends` holds its subscriptions until `ends.close()`
+        ends.subscriber("camera_info", self.inbox.on_info)
+        self._ends = ends
+
     def open(self, session: zenoh.Session) -> None:
-        """Declare this robot's endpoints on `session` (from the loop thread) and announce it."""
+        """Declare this robot's endpoints on `session` (from the loop thread; the camera's already if `listen`ed)
+        and announce it."""
         k = self.keys
         inbox = self.inbox
-        ends = Endpoints(session, k, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
-        ends.subscriber("camera_image", inbox.on_frame)  # `ends` holds its subscriptions until `ends.close()`
-        ends.subscriber("camera_info", inbox.on_info)
+        self.listen(session)
+        ends = self._ends
+        assert ends is not None
         commands = session.declare_queryable(k.key("servo_command"), inbox.on_query)
         if k.rmw:
             declare_command_services(ends, inbox.on_query)
@@ -183,7 +197,7 @@ class RobotServo:
                      for name in ("servo_twist", "servo_status", "servo_state", "servo_config", "servo_reference")}
         self._residual = ResidualPublisher(ends.publisher("servo_residual"))
         token = session.liveliness().declare_token(k.key("liveliness"))
-        self._zenoh = _Declared(ends, commands, token)
+        self._zenoh = _Declared(commands, token)
         log.info("serving", extra=fields(robot=self.config.robot, prefix=self.config.prefix,
                                           state=self.pipeline.machine.state.value, state_dir=str(self.store.dir)))
         self._publish_config()
@@ -199,11 +213,13 @@ class RobotServo:
                 self._zenoh.token.undeclare()
                 self._residual.close()
                 self._zenoh.commands.undeclare()
-                self._zenoh.ends.close()
                 self._zenoh = None
                 log.info("robot stopped", extra=fields(robot=self.config.robot, reason=reason,
                                                         **self.current_counters().model_dump(),
                                                         received=self.inbox.frames_received))
+            if self._ends is not None:
+                self._ends.close()
+                self._ends = None
         finally:
             self._persist_state()  # with the last good estimate, where a restart re-acquires from first
             self.writer.close()
@@ -460,9 +476,8 @@ class RobotServo:
 
 @dataclass(frozen=True)
 class _Declared:
-    """What `open` declared on the session (undeclared by `close`)."""
+    """What `open` declared on the session besides the robot's `Endpoints` (undeclared by `close`)."""
 
-    ends: Endpoints
     commands: zenoh.Queryable[None]
     token: zenoh.LivelinessToken
 

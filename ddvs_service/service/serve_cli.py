@@ -122,10 +122,13 @@ def run(args: argparse.Namespace) -> int:
     served = ServeProcess(fleet, warmup=args.warmup)
     if served.uncovered() or not check_process_covered(fleet.command_key, base.zenoh.zenoh_config):
         return 2  # logged: the router configuration beside ours would silently drop those robots or process commands
-    if args.warmup:
-        seconds = served.warm_up()
-        log.info("warm-up done", extra=fields(seconds=round(seconds, 3), robots=len(served.robots)))
-    gc.freeze()
-    gc.enable()
-    served.run(stop)
+
+    def prepare() -> None:  # with the session open and the cameras subscribed: their frames arrive meanwhile
+        if args.warmup:
+            seconds = served.warm_up()
+            log.info("warm-up done", extra=fields(seconds=round(seconds, 3), robots=len(served.robots)))
+        gc.freeze()
+        gc.enable()
+
+    served.run(stop, prepare)
     return 0

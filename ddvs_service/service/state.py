@@ -101,6 +101,15 @@ class StateMachine:
         self.state = ServoState.SERVOING
         return self.state
 
+    def resume(self) -> ServoState:
+        """A restart resumes an active servo (SERVOING, CONVERGED or LOST when its process stopped) from what an
+        earlier process persisted, an estimate not trusted yet: LOST (zero twist) until `confirm_frames`
+        consecutive tracked frames confirm the re-acquisition, as after any loss."""
+        if self.state == ServoState.IDLE:
+            raise TransitionError("cannot resume: no reference image is set (state IDLE)")
+        self.state, self._tracked, self._below = ServoState.LOST, 0, 0
+        return self.state
+
     def stop(self) -> ServoState:
         if self.state == ServoState.IDLE:
             raise TransitionError("cannot stop: nothing to stop (state IDLE, no reference set)")
