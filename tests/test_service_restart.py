@@ -179,3 +179,19 @@ def test_a_frame_sent_during_the_warm_up_is_the_first_answered_and_tracked_from_
         code, _ = service.stop()
         op.close()
     assert code == 0
+
+
+def test_a_restart_whose_view_moved_away_tries_the_persisted_estimate_once_then_searches_globally(
+        tmp_path: Path) -> None:
+    """The camera was turned while the service was down: the first frame's attempt from the persisted estimate
+    fails on the loop (the status names it), the frame goes to the background search, and the servo moves once the
+    tracked frames confirm the global initialiser's pose."""
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    img = scene()
+    _servo_until_tracked(config, tmp_path, port, img, shifted(img, 5.0, 3.0))
+    status, messages, _ = _restart_and_serve(config, tmp_path, port, shifted(img, 5.0, 3.0, angle_deg=25.0))
+    assert messages[0].startswith("tracking from the last good estimate: "), messages[:3]
+    assert "global initialisation: LOST (searching in the background)" in messages[0], messages[:3]
+    assert status["state"] == "SERVOING", status
+    assert any("global initialisation: ok" in m for m in messages), messages
