@@ -3,8 +3,9 @@
 
 - `planar`: `kernels.planar_step` (the planar model's step).
 - `general`: the four `kernels.general_step` specialisations the general model's frame path launches (ρ* columns
-  or not × Keys or B-spline sampling), degree `--degree` of ρ*; the times are their sum. Each launch runs under the
-  module's `compile_settings` (Taichi's settings the registration compiles it with), as the registration does.
+  or not × Keys or B-spline sampling), degree `--degree` of ρ*; the times are their sum.
+Each launch runs under `kernels.backend.compile_settings` (Taichi's settings the registrations compile them with);
+a `--general-module FILE` under its own `compile_settings` if it has one, else with Taichi's defaults.
 
 Each measurement runs in its own process; the cache directory is chosen through Taichi's
 `TI_OFFLINE_CACHE_FILE_PATH`, so nobody else's cache is touched. Besides wall time each row gives the process CPU
@@ -67,6 +68,7 @@ def planar_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[],
     import numpy as np
 
     from kernels import planar_step as ps
+    from kernels.backend import compile_settings
 
     ref, cur = _images()
     u0, v0, u1, v1 = ROI
@@ -78,7 +80,11 @@ def planar_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[],
     params[ps.PARAMS_SIGMA], params[ps.PARAMS_ROBUST], params[ps.PARAMS_BANDS] = 4.0, 1, 8
     params[ps.PARAMS_GAINS:] = 1.0
     work = np.zeros(ps.work_size(ps.n_params(rows, cols)), dtype=np.float32)
-    return {"planar_step": lambda: ps.planar_step(ref, cur, params, work, rows, cols)}
+
+    def launch() -> None:
+        with compile_settings():
+            ps.planar_step(ref, cur, params, work, rows, cols)
+    return {"planar_step": launch}
 
 
 def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[], None]]:
@@ -126,9 +132,15 @@ def general_cases(gs: ModuleType, rows: int, cols: int, degree: int) -> dict[str
 
 
 def _launch_general(gs: ModuleType, *args: object) -> None:
-    """`gs.general_step(*args)` under the module's `compile_settings` (what the registration compiles it with), or
-    plainly where an older module has none."""
-    with getattr(gs, "compile_settings", contextlib.nullcontext)():
+    """`gs.general_step(*args)` under `kernels.backend.compile_settings` (what the registration compiles it with);
+    another file's module (`--general-module`) under its own `compile_settings`, or plainly where it has none."""
+    from kernels import general_step
+    from kernels.backend import compile_settings
+
+    settings: Callable[[], contextlib.AbstractContextManager[None]] = compile_settings
+    if gs is not general_step:
+        settings = getattr(gs, "compile_settings", contextlib.nullcontext)
+    with settings():
         gs.general_step(*args)
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 import ast
 import functools
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import taichi as ti
 from taichi.lang import impl, kernel_impl
@@ -70,3 +72,25 @@ def _source_read_once() -> None:
     (docs/performance.md, Start-up). The source of a loaded module does not change, so read it once per function
     (Taichi copies the lines it is given and parses a fresh tree from them every time)."""
     kernel_impl.getsourcelines = functools.cache(kernel_impl.getsourcelines)
+
+
+@contextmanager
+def compile_settings() -> Iterator[None]:
+    """Taichi's settings for compiling the frame-path kernels (`planar_step`, `general_step`), restored on exit: its
+    CFG optimisation (store-to-load forwarding, dead stores) and its advanced optimisations (constant folding,
+    algebraic simplification, common subexpressions, loop-invariant code motion) off, LLVM's own passes doing that
+    work instead. On those kernels' unrolled accumulations Taichi's passes were most of a cold compile, growing with
+    the gain grid (docs/performance.md, Compile time); without them a cold compile takes a third of the CPU time or
+    less, with the same sums up to float32 rounding and the same launch and warm-cache times within the noise.
+    Enclose whatever compiles a specialisation: its first plain call, or the construction of a
+    `kernels.launch.Prepared` for it (on the CPU; another backend compiles at the first launch, with Taichi's
+    defaults). Taichi's offline cache keys on these settings, so a kernel compiled outside keeps an entry of its own.
+    The settings are process-wide: like any Taichi work this runs on one thread at a time (`kernels.exclusive.GATE`,
+    which hands over only at a checkpoint, and none lies in here), so no other kernel compiles under them."""
+    config = impl.current_cfg()
+    saved = config.cfg_optimization, config.advanced_optimization
+    config.cfg_optimization = config.advanced_optimization = False
+    try:
+        yield
+    finally:
+        config.cfg_optimization, config.advanced_optimization = saved

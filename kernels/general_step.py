@@ -45,17 +45,13 @@ kernel keeps its unrolled part to the one pixel loop (the Jacobian row and the p
 not vectors indexed by `ti.static` constants) and keeps no large thread-local array: the band partials and the
 histogram live in the work array (docs/performance.md). Even so, the pixel loop's per-row sums (up to 230 on a
 4-column grid with a degree-3 ρ*) made that pass most of a cold compile; `general_step` compiles without it and
-without Taichi's other IR optimisations (`compile_settings`), LLVM promoting the locals to registers and simplifying
-instead: a third of the CPU time cold, the same sums up to float32 rounding, launches within a few per cent
-(benchmarks/README.md).
+without Taichi's other IR optimisations (`kernels.backend.compile_settings`), LLVM promoting the locals to registers
+and simplifying instead: a third of the CPU time cold, the same sums up to float32 rounding, launches within a few
+per cent (benchmarks/README.md).
 One float32 parameter array in (`PARAMS_*`), one float32 work array out (`work_size`).
 """
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import taichi as ti
-from taichi.lang import impl
 
 from kernels.planar_step import (
     HIST_BINS,
@@ -102,25 +98,6 @@ def _tri(i: int, j: int, n: int) -> int:
     """Position of `(min(i, j), max(i, j))` in the row-major upper triangle of an `n × n` matrix."""
     i, j = min(i, j), max(i, j)
     return i * n - i * (i - 1) // 2 + j - i
-
-
-@contextmanager
-def compile_settings() -> Iterator[None]:
-    """Taichi's settings for compiling `general_step`, restored on exit: its CFG optimisation (store-to-load
-    forwarding, dead stores) and its advanced optimisations (constant folding, algebraic simplification, common
-    subexpressions, loop-invariant code motion: LLVM's own passes do that work) off (module docstring, Compile time).
-    Enclose whatever compiles a specialisation: its first plain call, or the construction of a
-    `kernels.launch.Prepared` for it (on the CPU; another backend compiles at the first launch, with Taichi's
-    defaults). The settings are process-wide: like any Taichi work, this runs on one thread at a time
-    (`kernels.exclusive.GATE`, which hands over only at a checkpoint, and none lies in here), so no other kernel
-    compiles under them."""
-    config = impl.current_cfg()
-    saved = config.cfg_optimization, config.advanced_optimization
-    config.cfg_optimization = config.advanced_optimization = False
-    try:
-        yield
-    finally:
-        config.cfg_optimization, config.advanced_optimization = saved
 
 
 def params_size(n_rho: int) -> int:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from evaluation.numpy_iteration import bilinear, numpy_step
-from kernels.backend import init
+from kernels.backend import compile_settings, init
 from kernels.planar_step import (
     N_STATS,
     PARAMS_BANDS,
@@ -50,9 +50,11 @@ def make_params(grid, robust=1, sigma=4.0, gains=None, beta=5.0, bands=8):
 
 
 def run_kernel(ref, cur, params, grid):
+    """The kernel compiled as the registration compiles it (`compile_settings`)."""
     n = n_params(*grid)
     work = np.zeros(work_size(n), dtype=np.float32)
-    planar_step(ref, cur, params, work, grid[0], grid[1])
+    with compile_settings():
+        planar_step(ref, cur, params, work, grid[0], grid[1])
     acc = work[: n_acc(n)].astype(np.float64)
     nt = n * (n + 1) // 2
     H = np.zeros((n, n))

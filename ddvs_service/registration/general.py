@@ -266,7 +266,8 @@ class GeneralRegistration:
         the B-spline coefficients of `cur` over a window around the ROI warped by the state (`spline_window`; samples
         outside its exact domain count as invalid). The launch is prepared once per (level, `with_rho`, buffer)
         (`kernels.launch.Prepared`)."""
-        from kernels.general_step import compile_settings, general_step, n_acc, work_size
+        from kernels.backend import compile_settings
+        from kernels.general_step import general_step, n_acc, work_size
 
         n = self.layouts[with_rho].size
         if n not in self._work:
@@ -280,7 +281,7 @@ class GeneralRegistration:
             lo, hi = probe.min(axis=0), probe.max(axis=0)
             cur = window.covering(cur, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
         if key not in self._steps or self._steps[key][0] is not cur:
-            with compile_settings():  # a new specialisation compiles here (kernels.general_step)
+            with compile_settings():  # a new specialisation compiles here (kernels.backend.compile_settings)
                 self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
                                                   self._work[n], self.basis.degree, self.basis.size, with_rho,
                                                   *self.grid, spline))

@@ -258,11 +258,13 @@ class PlanarRegistration:
     def _step(self, index: int) -> Prepared:
         """`kernels.planar_step` bound to level `index`'s reference and current buffers and this engine's parameter
         and work arrays."""
+        from kernels.backend import compile_settings
         from kernels.planar_step import planar_step
 
         if index not in self._steps:
-            self._steps[index] = Prepared(planar_step, self.reference[index], self.current.buffers[index],
-                                          self._params, self._work, self.grid[0], self.grid[1])
+            with compile_settings():  # a new specialisation compiles here (kernels.backend.compile_settings)
+                self._steps[index] = Prepared(planar_step, self.reference[index], self.current.buffers[index],
+                                              self._params, self._work, self.grid[0], self.grid[1])
         return self._steps[index]
 
     def _fill_level(self, level: Level) -> None:

@@ -1,7 +1,8 @@
-"""`kernels.general_step.compile_settings` (issue 21): `general_step` compiles with Taichi's CFG and advanced IR
-optimisations off. The settings are process-wide, so they must come back whatever happens inside, and the kernel
+"""`kernels.backend.compile_settings` (issue 21): the frame-path kernels compile with Taichi's CFG and advanced IR
+optimisations off. The settings are process-wide, so they must come back whatever happens inside, and a kernel
 compiled under them must give the normal equations of the kernel compiled with Taichi's defaults (to float32
-rounding). Real Taichi kernels, a real texture."""
+rounding): `general_step` here, `planar_step` against a float64 oracle in tests/test_kernels_planar_step.py. Real
+Taichi kernels, a real texture."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import pytest
 from taichi.lang import impl
 
 from kernels import general_step as gs
-from kernels.backend import init
+from kernels.backend import compile_settings, init
 from sim.textures import load_texture
 
 ROI = (300, 250, 399, 329)  # u0, v0, u1, v1 (inclusive): 100×80
@@ -29,10 +30,10 @@ def _settings() -> tuple[bool, bool]:
 def test_settings_are_off_inside_and_restored_after_an_error() -> None:
     init()
     before = _settings()
-    with gs.compile_settings():
+    with compile_settings():
         assert _settings() == (False, False)
     assert _settings() == before
-    with pytest.raises(RuntimeError), gs.compile_settings():
+    with pytest.raises(RuntimeError), compile_settings():
         raise RuntimeError("inside")
     assert _settings() == before
 
@@ -63,7 +64,7 @@ def test_sums_match_the_kernel_compiled_with_taichis_defaults() -> None:
     sums = {}
     for name, module in (("settings", gs), ("defaults", defaults)):
         work = np.zeros(gs.work_size(n), dtype=np.float32)
-        with gs.compile_settings() if module is gs else contextlib.nullcontext():
+        with compile_settings() if module is gs else contextlib.nullcontext():
             module.general_step(ref, cur, params, work, 2, 1, False, 1, 1, False)
         sums[name] = work[:gs.n_acc(n)].astype(np.float64)
     nt = n * (n + 1) // 2
