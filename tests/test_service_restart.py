@@ -150,15 +150,19 @@ def test_an_unusable_persisted_estimate_is_dropped_and_the_first_frame_initialis
 
 
 def test_a_frame_sent_during_the_warm_up_is_the_first_answered_and_tracked_from_the_persisted_estimate(
-        tmp_path: Path) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Restarted, the service subscribes to its camera before its warm-up and declares everything else after it:
     a frame published once the subscription matched, while the service does not answer yet, is the first frame it
     serves. That frame is registered at once from the persisted last good estimate (on the loop thread, not handed
-    to the background search), and is the first of `confirm_frames` tracked frames the servo holds still for."""
+    to the background search), and is the first of `confirm_frames` tracked frames the servo holds still for. The
+    restarted process gets an empty Taichi offline cache, so its warm-up compiles (about 1.5 s here, three times a
+    warm one) and the test's command lands inside it: with the set-up's warm cache the warm-up could end before the
+    command (a fresh clone's run)."""
     port = free_port()
     config = service_config(port, tmp_path / "state")
     img, view = scene(), shifted(scene(), 5.0, 3.0)
     _servo_until_tracked(config, tmp_path, port, img, view)
+    monkeypatch.setenv("TI_OFFLINE_CACHE_FILE_PATH", str(tmp_path / "empty-taichi-cache"))
     service = Service(config, tmp_path)
     op = Operator(port)
     try:
