@@ -59,27 +59,16 @@ class _Sums:
         self.covariance = np.zeros((12, 12))
         self.unknown = 0
 
-    def add(self, error: F64, square: float, covariance: F64 | None) -> None:
-        """A frame enters the window: its error, ‖error‖² and covariance (None: unknown)."""
-        self.error += error
-        self.square += square
+    def update(self, sign: int, error: F64, square: float, covariance: F64 | None) -> None:
+        """A frame enters (`sign` 1) or leaves (−1) the window: its error, ‖error‖² and covariance (None: unknown)."""
+        self.error += sign * error
+        self.square += sign * square
         if not self.covariances:
             return
         if covariance is None:
-            self.unknown += 1
+            self.unknown += sign
         else:
-            self.covariance += covariance
-
-    def remove(self, error: F64, square: float, covariance: F64 | None) -> None:
-        """A frame leaves the window (what `add` was given for it)."""
-        self.error -= error
-        self.square -= square
-        if not self.covariances:
-            return
-        if covariance is None:
-            self.unknown -= 1
-        else:
-            self.covariance -= covariance
+            self.covariance += sign * covariance
 
     def mean_and_scatter(self) -> tuple[float, float]:
         """‖mean‖ and the RMS deviation from the mean of the window's errors (full window)."""
@@ -136,8 +125,8 @@ class SettleWindow:
         for sums in (self._short, self._long):
             if self._count >= sums.length:  # the frame `sums.length` frames ago leaves that window
                 old = (self._next - sums.length) % length
-                sums.remove(self._errors[old], self._squares[old], self._covariances[old])
-            sums.add(error, square, covariance)
+                sums.update(-1, self._errors[old], self._squares[old], self._covariances[old])
+            sums.update(1, error, square, covariance)
         self._errors[self._next], self._covariances[self._next] = error, covariance
         self._squares[self._next] = square
         self._next = (self._next + 1) % length
