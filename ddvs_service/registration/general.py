@@ -49,7 +49,7 @@ from ddvs_service.registration.general_config import (
 from ddvs_service.registration.general_result import GeneralResult, flags_for, warp_homogeneous
 from ddvs_service.registration.images import F32
 from ddvs_service.registration.layout import ParamLayout
-from ddvs_service.registration.planar import PlanarRegistration
+from ddvs_service.registration.planar import PlanarRegistration, in_full_resolution, in_level
 from ddvs_service.registration.reference import CurrentPyramid, Level, PreparedReference, Roi
 from ddvs_service.registration.solver import (
     LevelOutcome,
@@ -285,7 +285,7 @@ class GeneralRegistration:
                 self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
                                                   self._work[n], self.basis.degree, self.basis.size, with_rho,
                                                   *self.grid, spline))
-        self._fill(level, level.D @ state.G @ level.D_inv, level.D @ state.e, state)
+        self._fill(level, in_level(level, state.G), level.D @ state.e, state)
         self._steps[key][1]()
         return NormalEquations.unpack(self._work[n][: n_acc(n)], n, self._sym[n])
 
@@ -312,7 +312,7 @@ class GeneralRegistration:
         G_l = M @ level.D @ state.G @ level.D_inv
         e_l = M @ level.D @ state.e + level.N_inv @ d["e"]
         c = state.c + d["rho"] if d["rho"].size else state.c.copy()
-        new = _State(level.D_inv @ G_l @ level.D, level.D_inv @ e_l, c,
+        new = _State(in_full_resolution(level, G_l), level.D_inv @ e_l, c,
                      bounded_gains(state.gains, d["S"], self.config.base),
                      state.beta + float(d["beta"][0]), state.scale)
         _normalise(new)
