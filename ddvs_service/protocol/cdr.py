@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
+from typing import NoReturn
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -136,9 +137,12 @@ class CdrReader:
     def _take(self, n: int, what: str) -> memoryview:
         pos = self._pos
         if pos + n > len(self._view):
-            raise TruncatedMessage(f"{what}: needs {n} bytes at offset {pos}, only {max(self.remaining, 0)} left")
+            self._truncated(n, pos, what)
         self._pos = pos + n
         return self._view[pos : pos + n]
+
+    def _truncated(self, n: int, pos: int, what: str) -> NoReturn:
+        raise TruncatedMessage(f"{what}: needs {n} bytes at offset {pos}, only {max(self.remaining, 0)} left")
 
     def _primitive(self, fmt: struct.Struct, what: str) -> int | float:
         """One primitive of `fmt.size` bytes after its alignment padding (`_align` and `_take` in one step: a frame
@@ -147,7 +151,7 @@ class CdrReader:
         pos = self._pos + (-self._pos % n)
         if pos + n > len(self._view):
             self._pos = pos
-            raise TruncatedMessage(f"{what}: needs {n} bytes at offset {pos}, only {max(self.remaining, 0)} left")
+            self._truncated(n, pos, what)
         self._pos = pos + n
         value: int | float = fmt.unpack_from(self._view, pos)[0]
         return value
