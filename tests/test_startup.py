@@ -75,3 +75,34 @@ def test_only_a_planar_robot_resuming_alone_leaves_the_initialiser_to_its_first_
     assert needs_initialiser(planar, None, alone=True)
     assert needs_initialiser(planar, last_good, alone=False)
     assert needs_initialiser(general, last_good, alone=True)
+
+
+OPENBLAS_THREADS = """
+import ctypes, sys
+from ddvs.cli import build_parser
+build_parser("serve")  # what `ddvs serve` does first: imports its module, then its arguments' (numpy, OpenCV)
+import cv2, numpy
+libraries = sorted({line.split()[-1] for line in open("/proc/self/maps") if "openblas" in line.split()[-1]})
+for path in libraries:
+    lib = ctypes.CDLL(path)
+    name = next(n for n in ("scipy_openblas_get_num_threads64_", "openblas_get_num_threads") if hasattr(lib, n))
+    print(path.rsplit("/", 1)[-1], getattr(lib, name)())
+"""
+
+
+@pytest.mark.parametrize("configured", [None, "2"])
+def test_serve_runs_openblas_on_one_thread_unless_configured(configured: str | None) -> None:
+    """numpy's and OpenCV's OpenBLAS start with one thread under `ddvs serve` (their thread pools spun at start-up,
+    docs/performance.md); an OPENBLAS_NUM_THREADS the user set is kept."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    if configured is not None:
+        env["OPENBLAS_NUM_THREADS"] = configured
+    done = subprocess.run([sys.executable, "-c", OPENBLAS_THREADS], env=env, cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    threads = dict(line.split() for line in done.stdout.splitlines())
+    assert len(threads) == 2, f"expected numpy's and OpenCV's OpenBLAS loaded, found {sorted(threads)}"
+    expected = configured or "1"
+    if configured is not None and os.cpu_count() == 1:
+        expected = "1"  # OpenBLAS caps its threads at the cores it finds
+    assert set(threads.values()) == {expected}, threads

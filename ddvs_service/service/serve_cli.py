@@ -8,6 +8,14 @@ and robots added at run time (`service.fleet_config`, `service.process`).
 from __future__ import annotations
 
 import argparse
+import os
+
+# Imported before anything that loads numpy or OpenCV (`ddvs.cli` imports this module, then calls `add_arguments`):
+# each bundles an OpenBLAS that otherwise starts one thread per core at import, and those threads spin
+# (`sched_yield`) after the service's small solves — about 0.25 s of CPU taken from a 2-core host's start-up, for
+# matrices of at most 18 × 18 that one thread solves anyway (docs/performance.md, Start-up). A value the user set
+# is kept.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,8 +55,6 @@ def use_realtime_scheduling(priority: int) -> None:
     --hogs 2); under SCHED_FIFO it runs as soon as a frame arrives. Needs root or CAP_SYS_NICE (systemd:
     `CPUSchedulingPolicy=fifo`, or `AmbientCapabilities=CAP_SYS_NICE` with this flag); Linux keeps 5 % of each
     second for normal tasks (`sched_rt_runtime_us`), so a runaway loop cannot freeze the host."""
-    import os
-
     if not 1 <= priority <= 99:
         raise SystemExit(f"--realtime-priority must be 1…99, got {priority}")
     try:
