@@ -112,12 +112,14 @@ def _restart_and_serve(config: ServiceConfig, tmp_path: Path, port: int,
     return status, [s["message"] for s in op.statuses], log
 
 
-def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp_path: Path) -> None:
-    """A planar servo stopped while it tracked persists its last good estimate; restarted, it warms up the tracking
-    kernels only (the initialiser's compile at the first search that needs it) and re-acquires the unchanged view
-    from that estimate, not by the global initialiser."""
+@pytest.mark.parametrize("model", ["planar", pytest.param("general", marks=pytest.mark.slow)])
+def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp_path: Path, model: str) -> None:
+    """A servo stopped while it tracked persists its last good estimate (and, general model, its ρ*); restarted, it
+    warms up the tracking kernels only (the initialiser's compile at the first search that needs it) and re-acquires
+    the unchanged view from that estimate, not by the global initialiser."""
     port = free_port()
     config = service_config(port, tmp_path / "state")
+    config = config.model_copy(update={"registration": config.registration.model_copy(update={"model": model})})
     img, view = scene(), shifted(scene(), 5.0, 3.0)
     _servo_until_tracked(config, tmp_path, port, img, view)
     G = np.reshape(json.loads((tmp_path / "state" / "state.json").read_text())["last_good_G"], (3, 3))

@@ -65,16 +65,20 @@ def test_warmup_only_refuses_no_warmup(tmp_path: Path) -> None:
     assert any("--warmup-only and --no-warmup" in r.get("error", "") for r in records(done.stderr))
 
 
-def test_only_a_planar_robot_resuming_alone_leaves_the_initialiser_to_its_first_search() -> None:
+def test_only_a_robot_resuming_alone_leaves_the_initialiser_to_its_first_search() -> None:
     """The warm-up skips the global initialiser's kernels only where the first frame is re-acquired from a persisted
-    estimate and no other robot of the process would share the pause of their later compile."""
+    estimate (and, general model, ρ*) and no other robot of the process would share the pause of their later
+    compile."""
     planar = ServiceConfig()
     general = planar.model_copy(update={"registration": planar.registration.model_copy(update={"model": "general"})})
-    last_good = np.eye(3)
+    last_good, rho = np.eye(3), [0.0] * 6
     assert not needs_initialiser(planar, last_good, alone=True)
     assert needs_initialiser(planar, None, alone=True)
     assert needs_initialiser(planar, last_good, alone=False)
-    assert needs_initialiser(general, last_good, alone=True)
+    assert not needs_initialiser(general, last_good, alone=True, rho_coeffs=rho)
+    assert needs_initialiser(general, last_good, alone=True)  # ρ* unknown: estimated from the initialiser's start
+    assert needs_initialiser(general, None, alone=True, rho_coeffs=rho)
+    assert needs_initialiser(general, last_good, alone=False, rho_coeffs=rho)
 
 
 OPENBLAS_THREADS = """

@@ -19,6 +19,12 @@ F64 = NDArray[np.float64]
 DEGREES = (2, 3)
 
 
+def coefficient_count(degree: int) -> int:
+    """Number of coefficients `c_k` of the basis of `degree`: every monomial `x^i y^j`, `0 ≤ i, j ≤ degree`, but
+    `1, x, y` (6 for degree 2, 13 for degree 3)."""
+    return (degree + 1) ** 2 - 3
+
+
 def _monomials(x: F64, y: F64, degree: int) -> F64:
     """(N, (degree + 1)²) values of `x^i y^j`, column `i·(degree + 1) + j`."""
     return np.stack([x**i * y**j for i in range(degree + 1) for j in range(degree + 1)], axis=1)

@@ -84,7 +84,7 @@ class ServeProcess:
         from ddvs_service.service.startup import needs_initialiser, warm_up
 
         alone = all(other is robot for other in self.robots.values())
-        initialiser = needs_initialiser(robot.config, robot.pipeline.last_good, alone)
+        initialiser = needs_initialiser(robot.config, robot.pipeline.last_good, alone, robot.pipeline.rho_coeffs)
         key = robot.config.registration.model_dump_json()
         if (key, True) in self._warmed or (key, initialiser) in self._warmed:  # with the initialiser covers without
             return 0.0

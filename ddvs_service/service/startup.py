@@ -15,12 +15,14 @@ the shipped configurations) fills it for a configuration's robots without servin
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
+from ddvs_service.registration.general_basis import coefficient_count
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.fleet_config import FleetConfig
 from ddvs_service.service.pipeline import ServoPipeline
@@ -45,7 +47,9 @@ def synthetic_scene(intrinsics: Intrinsics, seed: int = 0) -> np.ndarray:
 
 def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: bool = True) -> float:
     """Run the configured frame path once on a synthetic scene; return the seconds it took. `initialiser` False:
-    the tracking path only (a planar robot resuming from its persisted last good estimate; `needs_initialiser`)."""
+    the tracking path only (a robot resuming alone from its persisted last good estimate; `needs_initialiser`):
+    a planar one from the identity, a general one resumed as a restart does, from the identity with ρ* known (zero:
+    the synthetic scene is a plane)."""
     t0 = time.monotonic()
     intrinsics = intrinsics or _fitting(WARM_UP_INTRINSICS, config.registration.roi)
     if not initialiser:  # nor its reference side (the tracking kernels do not depend on this setting)
@@ -53,7 +57,13 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: b
             update={"global_init": False})})
     pipeline = ServoPipeline(config, intrinsics, background_reacquisition=False)  # the initialiser on this thread
     reference = synthetic_scene(intrinsics)
-    pipeline.set_reference(reference, G0=None if initialiser else np.eye(3))
+    if initialiser:
+        pipeline.set_reference(reference)
+    elif config.registration.model == "general":
+        rho = [0.0] * coefficient_count(config.registration.general_config().rho_degree)
+        pipeline.set_reference(reference, rho_coeffs=rho, last_good=np.eye(3))
+    else:
+        pipeline.set_reference(reference, G0=np.eye(3))
     pipeline.machine.start()
     for dx in (1.5, 2.0):  # the first frame goes through the global initialiser (unless G0), the second is tracked
         pipeline.step(cv2.warpAffine(reference, np.array([[1.0, 0.0, dx], [0.0, 1.0, -dx]]),
@@ -61,16 +71,19 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: b
     return time.monotonic() - t0
 
 
-def needs_initialiser(config: ServiceConfig, last_good: NDArray[np.float64] | None, alone: bool) -> bool:
+def needs_initialiser(config: ServiceConfig, last_good: NDArray[np.float64] | None, alone: bool,
+                      rho_coeffs: Sequence[float] = ()) -> bool:
     """Whether a robot's warm-up must compile the global initialiser's kernels too: always without a last good
-    estimate to re-acquire from (a new reference, a first start), for the general model (its warm-up estimates ρ*
-    through the initialiser) and when the process serves other robots (`alone` False). A planar robot resuming
-    alone from its persisted estimate does not: its warm-up leaves the initialiser's kernels (about half of a warm
-    start's compile time) to the first search that needs them, on the re-acquisition worker. That compile holds the
-    GIL (Taichi's code generation does not release it), so the loop pauses for it once (about 0.4 s of CPU, more
-    wall time on a loaded host) while the robot is LOST and its twist zero — a pause other robots of the process
-    would share while they move, hence not with them."""
-    return last_good is None or config.registration.model == "general" or not alone
+    estimate to re-acquire from (a new reference, a first start), for the general model without persisted ρ*
+    coefficients `rho_coeffs` (its first frame estimates ρ* from the initialiser's start) and when the process
+    serves other robots (`alone` False). A robot resuming alone from its persisted estimate (and ρ*) does not: its
+    warm-up leaves the initialiser's kernels (about half of a warm planar start's compile time, more than half of a
+    general one's) to the first search that needs them, on the re-acquisition worker. That compile holds the GIL
+    (Taichi's code generation does not release it), so the loop pauses for it once (about 0.4 s of CPU for the
+    planar model, more wall time on a loaded host) while the robot is LOST and its twist zero — a pause other robots
+    of the process would share while they move, hence not with them."""
+    unknown_rho = config.registration.model == "general" and not rho_coeffs
+    return last_good is None or unknown_rho or not alone
 
 
 def warm_up_configured(fleet: FleetConfig) -> dict[str, float]:
