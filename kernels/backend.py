@@ -19,6 +19,8 @@ import taichi as ti
 from taichi.lang import impl, kernel_impl
 from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext
 
+from kernels.exclusive import GATE
+
 _ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "gpu": ti.gpu}
 _chosen: str | None = None  # the backend Taichi runs on
 _requested: str | None = None  # what the first call asked for
@@ -49,6 +51,21 @@ def init(arch: str | None = None) -> str:
     started = impl.current_cfg().arch
     _chosen = "cpu" if started == ti.cpu else started.name  # `ti.cpu` is the host's (x64, arm64)
     return _chosen
+
+
+def finish() -> None:
+    """End this process's Taichi program, which writes what the process compiled to Taichi's offline cache: Taichi
+    writes it only when its program is finalised, otherwise as the interpreter exits, and only if the program
+    object is destroyed then — never once `gc.freeze()` has moved it out of the collector's reach, as `ddvs serve`
+    does with its start-up objects. For the end of a process: every thread that launches kernels must be done or
+    stopped, so this takes `kernels.exclusive.GATE` for good first (a background search waits at its next
+    checkpoint until the process exits); no kernel runs afterwards."""
+    global _chosen, _requested
+    if _chosen is None:
+        return
+    GATE.close()
+    ti.reset()
+    _chosen = _requested = None
 
 
 def _source_position(self: ASTTransformerContext, node: ast.stmt | ast.expr) -> str:

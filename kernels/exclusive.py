@@ -52,6 +52,11 @@ class Gate:
         finally:
             self._release()
 
+    def close(self) -> None:
+        """Take the lock in the foreground for good, on this thread: for the end of a process, after which no other
+        thread may enter Taichi (`kernels.backend.finish`); a background holder's next checkpoint waits for ever."""
+        self._acquire(background=False)
+
     def checkpoint(self) -> None:
         """Hand the lock to waiting foreground threads, if the calling thread holds it in the background."""
         if self._waiting == 0:  # the common case, without the condition's lock (a stale read waits one launch)

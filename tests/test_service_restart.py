@@ -133,6 +133,25 @@ def test_restart_resumes_from_the_last_good_estimate_without_the_initialiser(tmp
     assert [w["initialiser"] for w in warmed] == [False], log[-3000:]
 
 
+@pytest.mark.slow
+def test_a_restart_finds_what_the_last_run_compiled_in_the_offline_cache(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stopped `ddvs serve` leaves the kernels it compiled in Taichi's offline cache (not only `--warmup-only`):
+    the next start compiles nothing and writes no cache file. Before, start-up's frozen objects (serve_cli) kept
+    Taichi's program from ever being finalised, so a service never wrote its cache and every start compiled again."""
+    cache = tmp_path / "ticache"
+    monkeypatch.setenv("TI_OFFLINE_CACHE_FILE_PATH", str(cache))
+    port = free_port()
+    config = service_config(port, tmp_path / "state")
+    with running_service(config, tmp_path, port):
+        pass
+    compiled = {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")}
+    assert compiled, "the service left no compiled kernel in the offline cache"
+    with running_service(config, tmp_path, port):
+        pass
+    assert {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")} == compiled
+
+
 def test_an_unusable_persisted_estimate_is_dropped_and_the_first_frame_initialised_globally(tmp_path: Path) -> None:
     """A persisted last good estimate that is no homography is refused with a logged reason; the service resumes
     its reference and state, warms the initialiser up and re-acquires globally."""

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.fleet_config import FleetConfig, read_file
     from ddvs_service.service.process import ServeProcess
-    from kernels.backend import init
+    from kernels.backend import finish, init
 
     setup_logging(args.log_level)
     log = logging.getLogger("ddvs.serve")
@@ -136,5 +136,8 @@ def run(args: argparse.Namespace) -> int:
         gc.freeze()
         gc.enable()
 
-    served.run(stop, prepare)
+    try:
+        served.run(stop, prepare)
+    finally:  # what this process compiled (its warm-up, kernels first needed later) is kept for the next start
+        finish()
     return 0
