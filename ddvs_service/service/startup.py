@@ -65,7 +65,7 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: b
     else:
         pipeline.set_reference(reference, G0=np.eye(3))
     pipeline.machine.start()
-    for dx in (1.5, 2.0):  # the first frame goes through the global initialiser (unless G0), the second is tracked
+    for dx in (1.5, 2.0):  # the first frame from the global initialiser's start (or the identity), then tracked
         pipeline.step(cv2.warpAffine(reference, np.array([[1.0, 0.0, dx], [0.0, 1.0, -dx]]),
                                      (intrinsics.width, intrinsics.height), borderMode=cv2.BORDER_REFLECT))
     return time.monotonic() - t0
