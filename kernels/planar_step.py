@@ -16,9 +16,10 @@ For every reference pixel `p*` of the region of interest (level pixels, `u` = co
 
 Pixels whose reference value or reference neighbours are masked (set to `MASKED`, ≤ `MASK_LIMIT` after
 filtering) or whose five warped samples are not all inside the current image get weight 0. Reductions follow
-PLATFORM-NOTES: each thread owns a band of rows, warps them into a thread-local rolling buffer, accumulates in
-registers row by row and writes one partial; a serial tail adds the partials. The warp and accumulation loops store
-only into thread-local arrays and have no data-dependent branch, so LLVM vectorises them (docs/performance.md).
+PLATFORM-NOTES: each thread owns a band of rows, warps them (and copies the reference's) into thread-local rolling
+buffers, accumulates in registers row by row and writes one partial; a serial tail adds the partials. The warp and
+accumulation loops store only into thread-local arrays and have no data-dependent branch, so LLVM vectorises them
+(docs/performance.md).
 Parameters come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array
 (`work_size`).
 """
@@ -244,17 +245,22 @@ def accumulate_row(acc: ti.template(), moments, cross_c, photo_c, photo_cb, cros
 def reference_taps(ref: ti.template(), v: ti.i32, u: ti.i32):
     """`I*(p*)` and its central differences `(∂u, ∂v)` at reference pixel `(u, v)` (one-sided at the image border);
     `ok` is false when one of the five taps is masked (≤ `MASK_LIMIT`). Loads and selects only."""
+    ul, ur, vu, vd = tap_bounds(ref, v, u)
+    return tap_differences(ref[v, u], ref[v, ul], ref[v, ur], ref[vu, u], ref[vd, u], ul, ur, vu, vd)
+
+
+@ti.func
+def tap_bounds(ref: ti.template(), v: ti.i32, u: ti.i32):
+    """Columns `ul`, `ur` and rows `vu`, `vd` of the neighbours of reference pixel `(u, v)`, clamped to the image."""
     hr = ref.shape[0]
     wr = ref.shape[1]
-    ul = ti.max(u - 1, 0)
-    ur = ti.min(u + 1, wr - 1)
-    vu = ti.max(v - 1, 0)
-    vd = ti.min(v + 1, hr - 1)
-    ir = ref[v, u]
-    rl = ref[v, ul]
-    rr = ref[v, ur]
-    ru = ref[vu, u]
-    rd = ref[vd, u]
+    return ti.max(u - 1, 0), ti.min(u + 1, wr - 1), ti.max(v - 1, 0), ti.min(v + 1, hr - 1)
+
+
+@ti.func
+def tap_differences(ir: ti.f32, rl: ti.f32, rr: ti.f32, ru: ti.f32, rd: ti.f32, ul: ti.i32, ur: ti.i32, vu: ti.i32,
+                    vd: ti.i32):
+    """`reference_taps` from the five taps (centre, left, right, up, down) read at the bounds of `tap_bounds`."""
     ok = ti.min(ti.min(ir, rl), ti.min(rr, ti.min(ru, rd))) > MASK_LIMIT
     return ir, (rr - rl) / (ur - ul), (rd - ru) / (vd - vu), ok
 
@@ -277,11 +283,17 @@ def hist_value(k: ti.i32, frac: ti.f32) -> ti.f32:
 
 @ti.func
 def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: ti.i32):
-    """Write band `b`'s partial sums `acc` and its |r| histogram `hist` to their places in `work` (`work_size`)."""
+    """Write band `b`'s partial sums `acc` and its |r| histogram `hist` to their places in `work` (`work_size`).
+
+    The loops run to `max(b, n)`, which is `n` (`b < MAX_BANDS ≤ n`) but not a constant to LLVM: with constant trip
+    counts it unrolled them 23- and 64-fold into long blocks of loads and stores (each store reloads the ndarray's
+    base pointer), a quarter of the band task's LLVM IR, whose code generation a warm-cache first launch repeats at
+    every start (docs/performance.md, Start-up)."""
     nacc = ti.static(acc.n)
-    for k in range(nacc):
+    ti.static_assert(min(nacc, HIST_BINS) >= MAX_BANDS)
+    for k in range(ti.max(b, nacc)):
         work[(1 + b) * nacc + k] = acc[k]
-    for k in range(HIST_BINS):
+    for k in range(ti.max(b, HIST_BINS)):
         work[nacc * (1 + MAX_BANDS) + b * HIST_BINS + k] = hist[k]
 
 
@@ -327,29 +339,39 @@ TILE_STRIDE = TILE + 2
 
 
 @ti.func
-def warp_row(cur: ti.template(), G: ti.template(), buf: ti.template(), slot: ti.i32, v: ti.i32, ut0: ti.i32,
-             n: ti.i32):
+def warp_row(cur: ti.template(), ref: ti.template(), G: ti.template(), buf: ti.template(), rbuf: ti.template(),
+             slot: ti.i32, v: ti.i32, ut0: ti.i32, n: ti.i32):
     """Warp `n` pixels of reference row `v` from column `ut0 − 1` into slot `slot` of the rolling buffer `buf`:
-    `I(w(G, p*))`, or `OUTSIDE` where the warp leaves `cur` or the sample is clipped (`SATURATED`). Stores go to a
-    thread-local array only, so LLVM keeps the ndarray pointers in registers and vectorises the loop (gathers for
-    the bilinear taps)."""
+    `I(w(G, p*))`, or `OUTSIDE` where the warp leaves `cur` or the sample is clipped (`SATURATED`); copy the same
+    pixels of the reference, row and columns clamped to the image, into the same slot of `rbuf`. Stores go to
+    thread-local arrays only, so LLVM keeps the ndarray pointers in registers and vectorises the loop (gathers for
+    the bilinear taps). The clamped reference reads happen here once per pixel rather than in the pixel loop,
+    which then reads all its taps from consecutive elements: the clamped left and right taps made LLVM scalarise
+    them there, lane by lane, a fifth of that loop's code to generate at every start (docs/performance.md)."""
+    hr = ref.shape[0]
+    wr = ref.shape[1]
+    vr = ti.min(ti.max(v, 0), hr - 1)
     for j in range(n):
         x, y, z = homography_apply(G, ti.cast(ut0 - 1 + j, ti.f32), ti.cast(v, ti.f32))
         val, ok = projected_sample(cur, x, y, z)
         buf[slot * TILE_STRIDE + j] = ti.select((ok == 1) & (val < SATURATED), val, OUTSIDE)
+        rbuf[slot * TILE_STRIDE + j] = ref[vr, ti.min(ti.max(ut0 - 1 + j, 0), wr - 1)]
 
 
 @ti.func
-def pixel_terms(ref: ti.template(), buf: ti.template(), span: ti.template(), h: ti.template(), v: ti.i32,
-                u: ti.i32, su: ti.i32, sc: ti.i32, sd: ti.i32, beta: ti.f32, grid_cols: ti.template()):
-    """Residual and ESM gradient of reference pixel `(u, v)` from the reference and the rolling buffer of warped
-    rows (`buf[sc + u]` is the warped sample at `(u, v)`, `su`/`sd` the rows above/below), with the row's column
-    gains `h` (`row_gains`).
+def pixel_terms(ref: ti.template(), rbuf: ti.template(), buf: ti.template(), span: ti.template(),
+                h: ti.template(), v: ti.i32, u: ti.i32, su: ti.i32, sc: ti.i32, sd: ti.i32, beta: ti.f32,
+                grid_cols: ti.template()):
+    """Residual and ESM gradient of reference pixel `(u, v)` from the rolling buffers of reference rows (`rbuf`) and
+    of warped rows (`buf[sc + u]` is the warped sample at `(u, v)`, `su`/`sd` the rows above/below; `warp_row`),
+    with the row's column gains `h` (`row_gains`); `ref` gives the image's bounds only.
 
     Returns `(ok, r, gx, gy, c0, b)`, `b` the column tents: `ok` is false where a reference tap is masked or a
     warped tap is `OUTSIDE`; `r`, `gx`, `gy`, `c0` are then 0 (finite, so that a weight of 0 cancels them). Loads
     only, no branches: the pixel loop that accumulates the normal equations stays vectorisable."""
-    ir, gxr, gyr, ref_ok = reference_taps(ref, v, u)
+    ul, ur, vu, vd = tap_bounds(ref, v, u)
+    ir, gxr, gyr, ref_ok = tap_differences(rbuf[sc + u], rbuf[sc + u - 1], rbuf[sc + u + 1], rbuf[su + u],
+                                           rbuf[sd + u], ul, ur, vu, vd)
     c0 = buf[sc + u]
     cl = buf[sc + u - 1]
     cr = buf[sc + u + 1]
@@ -409,13 +431,14 @@ def planar_step(
             last = v0 + (b + 1) * rows // nb  # exclusive
             acc = ti.Vector([0.0] * NACC, ti.f32)
             buf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # rows v − 1, v, v + 1 of the warped current image
+            rbuf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # the same rows of the reference
             for tile in range((u1 - u0 + TILE) // TILE):
                 ut0 = u0 + tile * TILE
                 ut1 = ti.min(ut0 + TILE - 1, u1)
                 n = ut1 - ut0 + 3
                 # Warp row t into its slot; once rows v − 1, v, v + 1 are there, process row v = t − 1.
                 for t in range(first - 1, last + 1):
-                    warp_row(cur, G, buf, (t - first + 1) % 3, t, ut0, n)
+                    warp_row(cur, ref, G, buf, rbuf, (t - first + 1) % 3, t, ut0, n)
                     if t > first:
                         v = t - 1
                         su = ((v - first) % 3) * TILE_STRIDE - ut0 + 1
@@ -434,7 +457,7 @@ def planar_step(
                         stats = ti.Vector.zero(ti.f32, 3)
                         # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
                         for u in range(ut0, ut1 + 1):
-                            ok, r, gx, gy, c0, bt = pixel_terms(ref, buf, span, h, v, u, su, sc, sd, beta, C)
+                            ok, r, gx, gy, c0, bt = pixel_terms(ref, rbuf, buf, span, h, v, u, su, sc, sd, beta, C)
                             valid = ti.select(ok, 1.0, 0.0)
                             w = valid * robust_weight(r, sigma, kind)
                             du = u - cx
@@ -467,10 +490,14 @@ def planar_step(
                         # The |r| histogram stores (into a thread-local array), so it gets its own scalar loop,
                         # over every other pixel of every other row, from the residual alone (valid where the
                         # pixel's own reference and warped values are): it only has to give the median's scale.
+                        # It leaves by a `break` at the tile's end: LLVM does not unroll a loop with two exits (with
+                        # its run-time trip count alone it made eight copies of the body to generate at each start).
                         if v % 2 == 0:
-                            for k in range((ut1 - ut0) // 2 + 1):
+                            for k in range((TILE + 1) // 2):
                                 u = ut0 + 2 * k
-                                ir = ref[v, u]
+                                if u > ut1:
+                                    break
+                                ir = rbuf[sc + u]
                                 c0 = buf[sc + u]
                                 gain, _b = column_tents(span, h, ti.cast(u, ti.f32), C)
                                 if ti.min(ir, c0) > MASK_LIMIT:
