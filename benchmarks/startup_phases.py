@@ -40,10 +40,12 @@ def main() -> None:
     import argparse
     import json
 
+    from ddvs_service.service import serve_cli  # first, as `ddvs serve` imports it: its environment defaults
+
+    # isort: split
     from ddvs_service.logs import setup_logging
     from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.session import session_config_from_args
-    from ddvs_service.service import serve_cli
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.fleet_config import FleetConfig, read_file
     phase("imports: protocol, configuration (numpy, pydantic, zenoh, cv2)")
