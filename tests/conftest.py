@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import socket
+from pathlib import Path
 
 import pytest
+
+
+def cached_kernels(cache: Path) -> dict[str, int]:
+    """Taichi's compiled kernels in the offline cache directory `cache`: file name → modification time (ns)."""
+    return {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")}
 
 
 def free_port() -> int:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import cached_kernels, free_port
 from test_service_node import F, H, Operator, Service, W, past_lost, running_service, scene, service_config, shifted
 
 from ddvs_service.camera import Intrinsics
@@ -145,11 +145,11 @@ def test_a_restart_finds_what_the_last_run_compiled_in_the_offline_cache(tmp_pat
     config = service_config(port, tmp_path / "state")
     with running_service(config, tmp_path, port):
         pass
-    compiled = {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")}
+    compiled = cached_kernels(cache)
     assert compiled, "the service left no compiled kernel in the offline cache"
     with running_service(config, tmp_path, port):
         pass
-    assert {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")} == compiled
+    assert cached_kernels(cache) == compiled
 
 
 def test_an_unusable_persisted_estimate_is_dropped_and_the_first_frame_initialised_globally(tmp_path: Path) -> None:

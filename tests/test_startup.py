@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cached_kernels
 
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.startup import needs_initialiser
@@ -29,11 +30,6 @@ def records(log: str) -> list[dict]:
     return [json.loads(line) for line in log.splitlines() if line.startswith("{")]
 
 
-def cached(cache: Path) -> dict[str, int]:
-    """Taichi's compiled kernels in `cache`: file name → modification time (ns)."""
-    return {p.name: p.stat().st_mtime_ns for p in cache.rglob("*.tic")}
-
-
 @pytest.mark.slow
 def test_warmup_only_fills_the_offline_cache_that_the_next_process_hits(tmp_path: Path) -> None:
     state, cache = tmp_path / "state", tmp_path / "ticache"
@@ -49,12 +45,12 @@ def test_warmup_only_fills_the_offline_cache_that_the_next_process_hits(tmp_path
     assert set(warmed) == {"w0", "w1"} and warmed["w0"] > 0.0 and warmed["w1"] == 0.0
     assert [r["robots"] for r in records(first.stderr) if r["msg"] == "warm-up done"] == [2]
     assert not state.exists()  # nothing served, nothing persisted
-    kernels = cached(cache)
+    kernels = cached_kernels(cache)
     assert kernels, "the warm-up left no compiled kernel in the offline cache"
 
     second = serve(config, cache, "--warmup-only")  # every kernel found: none compiled, none written again
     assert second.returncode == 0, second.stderr
-    assert cached(cache) == kernels
+    assert cached_kernels(cache) == kernels
 
 
 def test_warmup_only_refuses_no_warmup(tmp_path: Path) -> None:
