@@ -17,7 +17,7 @@ from ddvs.cli import main
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.general import GeneralRegistration
-from ddvs_service.registration.general_basis import ParallaxBasis
+from ddvs_service.registration.general_basis import ParallaxBasis, coefficient_count
 from ddvs_service.registration.general_config import FLAG_LOST, FLAG_NO_PARALLAX, FLAG_OCCLUSION, GeneralConfig
 from ddvs_service.registration.general_register import register_general
 from ddvs_service.registration.general_result import warp_points
@@ -70,6 +70,7 @@ def test_basis_fixes_the_plane_gauge() -> None:
         p = roi_pixels()
         phi = basis.values(p)
         assert phi.shape == (len(p), n)
+        assert basis.size == coefficient_count(degree) == n  # the count the warm-up sizes a persisted ρ* by
         x, y = basis.coordinates(p)
         moments = np.c_[np.ones(len(p)), x, y].T @ phi / len(p)
         np.testing.assert_allclose(moments, 0.0, atol=1e-10)
