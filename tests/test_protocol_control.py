@@ -6,6 +6,7 @@ import base64
 import contextlib
 import json
 import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -170,15 +171,43 @@ def test_uploads_round_trip_losslessly(fmt: str, dtype: type) -> None:
 def test_upload_sizes_are_checked_before_decoding() -> None:
     png = base64.b64decode(encode_upload(np.zeros((8, 8), np.uint8), "png"))
     forged = png[:16] + struct.pack(">II", 100_000, 100_000) + png[24:]  # IHDR claims 10^10 pixels
-    with pytest.raises(MessageTooLarge, match="100000×100000 pixels"):
+    with pytest.raises(MessageTooLarge, match="100000×100000 pixels × 1 channels × 1 bytes"):
         decode_upload(base64.b64encode(forged).decode(), "png")
     npy = base64.b64decode(encode_upload(np.zeros((8, 8), np.uint8), "npy"))
     forged_npy = npy.replace(b"(8, 8)", b"(9, 9)")  # header claims 81 bytes, body holds 64
     with pytest.raises(InvalidMessage, match="body has 64 bytes"):
         decode_upload(base64.b64encode(forged_npy).decode(), "npy")
     with pytest.raises(MessageTooLarge):
-        decode_upload(encode_upload(np.zeros((64, 64), np.uint8), "npy"), "npy", max_pixels=100)
+        decode_upload(encode_upload(np.zeros((64, 64), np.uint8), "npy"), "npy", max_bytes=100)
     with pytest.raises(InvalidMessage, match="not valid base64"):
         decode_upload("@@@", "png")
     with pytest.raises(InvalidMessage, match="dtype"):
         decode_upload(encode_upload(np.zeros((4, 4), np.int64), "npy"), "npy")
+
+
+def _png_of_zeros(width: int, height: int, depth: int, colour: int, channels: int) -> bytes:
+    """A valid PNG of zeros built chunk by chunk, compressed row by row: the payload stays small however many pixels
+    it declares (a decode bomb)."""
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    row = bytes(1 + width * channels * depth // 8)  # filter byte 0, then the zero samples
+    packer = zlib.compressobj(9)
+    idat = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def test_a_png_decode_bomb_is_refused_from_its_header() -> None:
+    """A 4096×4096 16-bit RGBA PNG is a ~130 KB payload and 128 MiB of pixels: the decoded size (width × height ×
+    channels × bytes per sample), not the pixel count, is bounded, before OpenCV allocates anything."""
+    bomb = _png_of_zeros(4096, 4096, depth=16, colour=6, channels=4)
+    assert len(bomb) < 1 << 20
+    text = base64.b64encode(bomb).decode()
+    with pytest.raises(MessageTooLarge, match="4096×4096 pixels × 4 channels × 2 bytes = 134217728 bytes decoded"):
+        decode_upload(text, "png", max_bytes=64 << 20)
+    small = _png_of_zeros(64, 32, depth=16, colour=6, channels=4)  # the same kind of image, within the bound
+    assert decode_upload(base64.b64encode(small).decode(), "png", max_bytes=64 * 32 * 8).shape == (32, 64, 4)
+    with pytest.raises(MessageTooLarge):
+        decode_upload(base64.b64encode(small).decode(), "png", max_bytes=64 * 32 * 8 - 1)

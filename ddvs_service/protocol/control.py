@@ -20,7 +20,8 @@ from typing import Annotated, Any, Final, Literal, TypeVar, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ddvs_service.protocol.errors import InvalidMessage
-from ddvs_service.protocol.upload import MAX_PIXELS, UploadFormat, decode_upload
+from ddvs_service.protocol.ros import IMAGE_MAX_BYTES
+from ddvs_service.protocol.upload import UploadFormat, decode_upload
 
 PROTOCOL_VERSION: Final = 1
 COMMAND_MAX_BYTES = 16 << 20
@@ -56,9 +57,10 @@ class ReferenceImage(_Message):
     format: UploadFormat
     data: str
 
-    def to_array(self, max_pixels: int = MAX_PIXELS) -> Any:
-        """Decoded numpy image; raises `InvalidMessage` or `MessageTooLarge` (size checked before decoding)."""
-        return decode_upload(self.data, self.format, max_pixels)
+    def to_array(self, max_bytes: int = IMAGE_MAX_BYTES) -> Any:
+        """Decoded numpy image of at most `max_bytes` bytes; raises `InvalidMessage` or `MessageTooLarge` (the
+        decoded size is checked before decoding)."""
+        return decode_upload(self.data, self.format, max_bytes)
 
 
 def process_command_key(prefix: str, process: str) -> str:

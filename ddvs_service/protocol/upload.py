@@ -1,7 +1,8 @@
 """Images carried inside JSON commands (`set_reference` with `source="upload"`): base64 PNG or `.npy`.
 
-Decoding checks the declared size in the PNG IHDR chunk or the `.npy` header *before* decompressing, so a
-forged or hostile upload cannot make the service allocate more than `max_pixels` pixels.
+Decoding checks the decoded size declared in the PNG IHDR chunk or the `.npy` header (width × height × channels ×
+bytes per sample, `image_size`) *before* decompressing, so a forged or hostile upload cannot make the service allocate
+more than `max_bytes` bytes.
 """
 
 from __future__ import annotations
@@ -16,11 +17,11 @@ import numpy as np
 from numpy.lib import format as npy_format
 from numpy.typing import NDArray
 
-from ddvs_service.protocol.errors import InvalidMessage, MessageTooLarge
+from ddvs_service.protocol.errors import InvalidMessage
+from ddvs_service.protocol.image_size import ImageHeader, check_decoded_size, png_header
+from ddvs_service.protocol.ros import IMAGE_MAX_BYTES
 
 UploadFormat = Literal["png", "npy"]
-MAX_PIXELS = 4096 * 4096
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _NPY_HEADER_READERS = {(1, 0): npy_format.read_array_header_1_0, (2, 0): npy_format.read_array_header_2_0}
 _NPY_DTYPES = ("|u1", "<u2", ">u2", "<f4", ">f4", "<f8", ">f8")
 
@@ -41,18 +42,10 @@ def encode_upload(image: NDArray, fmt: UploadFormat = "png") -> str:
     return base64.b64encode(raw).decode("ascii")
 
 
-def _check_pixels(height: int, width: int, max_pixels: int) -> None:
-    if height * width > max_pixels:
-        raise MessageTooLarge(f"uploaded image is {width}×{height} pixels; the maximum is {max_pixels} pixels")
-    if height == 0 or width == 0:
-        raise InvalidMessage(f"uploaded image is {width}×{height} pixels; expected a non-empty image")
-
-
-def _decode_png(raw: bytes, max_pixels: int) -> NDArray:
-    if len(raw) < 24 or raw[:8] != _PNG_SIGNATURE or raw[12:16] != b"IHDR":
-        raise InvalidMessage("uploaded 'png' data does not start with a PNG signature and IHDR chunk")
-    width, height = struct.unpack(">II", raw[16:24])
-    _check_pixels(height, width, max_pixels)
+def _decode_png(raw: bytes, max_bytes: int) -> NDArray:
+    header = png_header(raw)
+    width, height = header.width, header.height
+    check_decoded_size(header, max_bytes, "uploaded PNG")
     import cv2  # deferred: importing OpenCV takes ~0.5 s
 
     image = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -61,7 +54,7 @@ def _decode_png(raw: bytes, max_pixels: int) -> NDArray:
     return image
 
 
-def _decode_npy(raw: bytes, max_pixels: int) -> NDArray:
+def _decode_npy(raw: bytes, max_bytes: int) -> NDArray:
     f = io.BytesIO(raw)
     try:
         version = npy_format.read_magic(f)
@@ -74,7 +67,8 @@ def _decode_npy(raw: bytes, max_pixels: int) -> NDArray:
         raise InvalidMessage(f"uploaded .npy has dtype {dtype.str}; expected one of {', '.join(_NPY_DTYPES)}")
     if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3, 4)):
         raise InvalidMessage(f"uploaded .npy has shape {shape}; expected (H, W) or (H, W, C) with C in 1, 3, 4")
-    _check_pixels(shape[0], shape[1], max_pixels)
+    check_decoded_size(ImageHeader(shape[1], shape[0], shape[2] if len(shape) == 3 else 1, dtype.itemsize),
+                       max_bytes, "uploaded .npy")
     expected = int(np.prod(shape)) * dtype.itemsize
     body = raw[f.tell() :]
     if len(body) != expected:
@@ -82,10 +76,11 @@ def _decode_npy(raw: bytes, max_pixels: int) -> NDArray:
     return np.frombuffer(body, dtype=dtype).reshape(shape, order="F" if fortran_order else "C").copy()
 
 
-def decode_upload(text: str, fmt: UploadFormat, max_pixels: int = MAX_PIXELS) -> NDArray:
-    """The image array of base64 `text` in format `fmt`; raises `InvalidMessage` / `MessageTooLarge`."""
+def decode_upload(text: str, fmt: UploadFormat, max_bytes: int = IMAGE_MAX_BYTES) -> NDArray:
+    """The image array of base64 `text` in format `fmt`, at most `max_bytes` bytes decoded; raises `InvalidMessage`
+    / `MessageTooLarge` (the size is checked before decoding)."""
     try:
         raw = base64.b64decode(text, validate=True)
     except (binascii.Error, ValueError) as exc:
         raise InvalidMessage(f"uploaded image is not valid base64: {exc}") from exc
-    return _decode_png(raw, max_pixels) if fmt == "png" else _decode_npy(raw, max_pixels)
+    return _decode_png(raw, max_bytes) if fmt == "png" else _decode_npy(raw, max_bytes)

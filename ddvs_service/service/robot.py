@@ -384,7 +384,7 @@ class RobotServo:
             roi = _roi_tuple(command.roi)
             if command.source == "upload":
                 assert command.image is not None
-                self._set_reference(command.image.to_array(), roi, time.time_ns(), G0=None)
+                self._set_reference(command.image.to_array(self.config.max_frame_bytes), roi, time.time_ns(), G0=None)
                 return self._snapshot().model_dump(mode="json")
             self._pending_reference = ("next_frame", roi)
             return {"pending": "the next camera frame becomes the reference"}
