@@ -276,3 +276,27 @@ def test_register_general_refuses_bad_input() -> None:
         GeneralConfig(interpolation="lanczos")
     with pytest.raises(ValueError, match="not inside"):
         GeneralRegistration.prepare(image, (500, 400, 200, 150))
+
+
+@pytest.mark.parametrize("trial", [5, 6, 9])
+def test_first_frame_of_a_large_saddle_view_registers(trial: int) -> None:
+    """The domain sweep's 0.2 m / 60° starts with the whole ROI patch in view: the best homography leaves a
+    parallax residual that keeps the planar stage's finest level from converging, yet it brings the general stage
+    into its basin — the first frame registers, at the true warp (it used to fail: "planar stage failed")."""
+    from ddvs_service.registration.global_init import GlobalInitConfig
+    from ddvs_service.registration.reacquisition import Reacquisition
+    from ddvs_service.service.config import RegistrationSettings
+    from orchestration.experiment_domain import ROI as DOMAIN_ROI
+    from orchestration.experiment_domain import DomainSettings, make_surface, trial_start
+
+    assert DOMAIN_ROI == ROI
+    saddle = make_surface("saddle")
+    T, _, _ = trial_start(DomainSettings(), 4.0, trial)
+    engine = GeneralRegistration.prepare(render(saddle, np.eye(4)), ROI,
+                                         config=RegistrationSettings(levels=3).general_config())
+    current = render(saddle, T)
+    start = Reacquisition(engine.planar, engine, GlobalInitConfig())(current)
+    assert start.G is not None, start.reason
+    result = engine.estimate(current, start.G)
+    assert result.converged, result.reason
+    assert warp_rms(result, saddle, T) < 0.5

@@ -153,9 +153,13 @@ class GeneralRegistration:
 
     def estimate(self, current: F32, G0: F64 | None) -> GeneralResult:
         """ρ* from scratch: planar registration from `G0` (its own cold start when None), then every starting
-        epipole direction refined with ρ* free; the lowest cost wins (module docstring)."""
+        epipole direction refined with ρ* free; the lowest cost wins (module docstring). The planar stage is a
+        start, not a verdict: on a non-planar scene the best homography leaves a parallax residual that keeps the
+        finest level from converging (or its inliers from reaching `min_inlier_ratio`) although it brings the
+        general stage into its basin, so only a failed planar stage (`RegistrationResult.failed`) ends here; the
+        general stage's convergence, inliers and margin decide."""
         planar = self.planar.run(current, G0=G0)
-        if not planar.converged or not np.all(np.isfinite(planar.G)):
+        if planar.failed or not np.all(np.isfinite(planar.G)):
             return self._failed(_State(planar.G if np.all(np.isfinite(planar.G)) else np.eye(3), np.zeros(3),
                                        np.zeros(self.basis.size), planar.S, planar.beta, None),
                                 f"planar stage failed: {planar.reason}", flags_for(planar.reason))

@@ -218,7 +218,8 @@ class PlanarRegistration:
         return RegistrationResult(
             G=state.G, S=state.gains.copy(), beta=state.beta, iterations=outcome.iterations,
             residual_rms=state.residual_rms, inlier_ratio=state.inlier_ratio, converged=converged, reason=reason,
-            scale=float("nan") if state.scale is None else state.scale, covariance=self._covariance(state),
+            failed=outcome.failed, scale=float("nan") if state.scale is None else state.scale,
+            covariance=self._covariance(state),
         )
 
     def _covariance(self, state: _State) -> F64 | None:

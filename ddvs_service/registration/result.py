@@ -20,7 +20,9 @@ class RegistrationResult:
     - `residual_rms`: RMS of `S·I(w(G, p*)) + β − I*(p*)` over the valid ROI
       pixels at the last evaluation (grey levels).
     - `inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ; `scale`: the robust scale σ (grey levels).
-    - `converged` and `reason`: why the iteration stopped.
+    - `converged` and `reason`: why the iteration stopped; `failed`: a level failed (diverged, degenerate, non-finite,
+      given up) and the estimate is unusable even as a start — a solve that only ran out of iterations or inliers
+      is not failed.
     - `covariance`: 12×12, the Gauss-Newton covariance of [vec(G) (row-major), e] (the general model's epipole;
       the planar model's rows and columns of `e` are zero; det G = 1 removes one more direction) that the image
       noise alone causes, σ² J (JᵀWJ)⁻¹ Jᵀ with σ = `scale`, `JᵀWJ` the last full-resolution step's over the
@@ -36,6 +38,7 @@ class RegistrationResult:
     inlier_ratio: float = 0.0
     converged: bool = False
     reason: str = ""
+    failed: bool = False
     scale: float = float("nan")
     covariance: NDArray[np.float64] | None = None
 

@@ -120,4 +120,4 @@ class Tracker:
     def _failure(self, reason: str) -> RegistrationResult:
         self._G_before = None
         return RegistrationResult(G=self._G.copy(), S=self._gains.copy(), beta=self._beta, iterations=[],
-                                  converged=False, reason=reason)
+                                  converged=False, reason=reason, failed=True)
