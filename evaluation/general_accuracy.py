@@ -25,10 +25,13 @@ import numpy as np
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose
+from ddvs_service.registration.general import GeneralRegistration
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.registration.general_result import GeneralResult
 from ddvs_service.registration.general_tracker import GeneralTracker
+from ddvs_service.registration.global_init import GlobalInitConfig
+from ddvs_service.registration.reacquisition import Reacquisition
 from orchestration.experiment_synthetic import run_synthetic
 from sim.freeflyer import render_camera, render_view
 from sim.ground_truth import ground_truth, parallax_map
@@ -89,11 +92,18 @@ def measure(render: Callable[[np.ndarray], np.ndarray], config: GeneralConfig) -
     u, v = np.meshgrid(np.arange(x, x + w, dtype=float), np.arange(y, y + h, dtype=float))
     p = np.c_[u.ravel(), v.ravel()]
     rho = parallax_map(saddle, INTR, np.eye(4))[p[:, 1].astype(int), p[:, 0].astype(int)]
-    tracker = GeneralTracker.prepare(render(np.eye(4)), ROI, config)
+    engine = GeneralRegistration.prepare(render(np.eye(4)), ROI, config=config)
+    tracker = GeneralTracker(engine)
     rows = []
     for k in [*range(0, 20, 2), *range(20, trajectory.images, 10), trajectory.images - 1]:
         T = pose(trajectory.rotations[k], trajectory.positions[k])
-        result = tracker.track(render(T))
+        image = render(T)
+        if k == 0:  # the cold start: from the global initialiser's estimate, ρ* estimated on this frame
+            start = Reacquisition(engine.planar, engine, GlobalInitConfig())(image)
+            if start.G is None:
+                raise RuntimeError(f"the global initialiser found no start on the first frame: {start.reason}")
+            tracker.reset(start.G)
+        result = tracker.track(image)
         gt = ground_truth(saddle, INTR, np.eye(4), T)
         P = np.c_[p, np.ones(len(p))] @ gt.G.T + np.outer(rho, gt.e)
         warp = float(np.sqrt(np.mean(np.sum((result.warp(p) - P[:, :2] / P[:, 2:]) ** 2, axis=1))))

@@ -9,10 +9,10 @@ and ViSP's `vpImageSimulator`; "distractors" — the same with the texture `DIST
 the texture repeated mirrored over the whole surface (a target filling any view; it has twin poses); the
 paper's 200×150 ROI centred on the control point `m*' = [0, 0, 1]`; λ = 0.4 (1/s) on every axis; the service's
 default twist saturation (`ControlSettings`); stop when the error norm is below 1e-3.
-- "planar": a plane. Geometry: the service's `PlanarEstimator` (planar tracker + direct global initialiser on the
-  first frame and after a lost frame; `e = 0`, `ρ* = 0`).
-- "saddle": the paper's horse saddle `Z = 1 + (X² − Y²)/a`, a = 1 m. Geometry: the service's `GeneralEstimator`
-  (eq. (2): global initialisation and ρ* estimated on the first frame, then `G`, `e` tracked with ρ* fixed).
+- "planar": a plane. Geometry: the service's tracking session (`service.estimators.tracking_session`) of the planar
+  model (planar tracker + direct global initialiser on the first frame and after a lost frame; `e = 0`, `ρ* = 0`).
+- "saddle": the paper's horse saddle `Z = 1 + (X² − Y²)/a`, a = 1 m. Geometry: the same session of the general
+  model (eq. (2): global initialisation and ρ* estimated on the first frame, then `G`, `e` tracked with ρ* fixed).
 
 Displacement of size `s`: the initial camera pose in the reference frame has a translation of `s · UNIT_T_M`
 metres along a uniformly random direction and a rotation of `s · UNIT_R_DEG` degrees about a uniformly random axis
@@ -54,7 +54,7 @@ from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from ddvs_service.service.config import ControlSettings, RegistrationSettings
-from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
+from ddvs_service.service.estimators import tracking_session
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
 from orchestration.journal import run_journalled
 from sim.freeflyer import Appearance, FreeFlyer, render_view
@@ -225,8 +225,9 @@ def run_trial(target: str, law: str, size: float, trial: int, settings: DomainSe
     backdrop = _texture(DISTRACTOR_TEXTURE) if settings.scene == "distractors" else None
     reference = render_view(surface, texture, CAMERA, np.eye(4), appearance(0.0, settings, seed + 1),
                             backdrop=backdrop)[0]
-    registration = RegistrationSettings(levels=3)  # the pyramid of the measured sweeps (the default is the engine's 8)
-    estimator = (GeneralEstimator if target == "saddle" else PlanarEstimator)(reference, ROI, registration)
+    # the pyramid of the measured sweeps (the default is the engine's 8)
+    registration = RegistrationSettings(levels=3, model="general" if target == "saddle" else "planar")
+    estimator = tracking_session(reference, ROI, registration)
     limits = ControlSettings()
     control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=settings.gain, stop_threshold=settings.threshold,
                                        max_linear=limits.max_linear, max_angular=limits.max_angular), CAMERA)

@@ -82,14 +82,19 @@ class TrackingLost(RuntimeError):
 
 
 class EstimatedGeometry:
-    """`(G, e, ρ*(m*))` estimated from the rendered frames by `GeneralTracker` (module docstring); the control
-    point is the principal point, the ROI `PAPER_ROI_SIZE` centred on it. Raises `TrackingLost` on a frame that
-    does not converge (the loop must not servo on a stale estimate)."""
+    """`(G, e, ρ*(m*))` estimated from the rendered frames by a tracking session of the general model
+    (`registration.session`, re-acquiring within the frame with the initialiser's default settings; module
+    docstring); the control point is the principal point, the ROI `PAPER_ROI_SIZE` centred on it. Raises
+    `TrackingLost` on a frame that does not converge (the loop must not servo on a stale estimate)."""
 
     needs_image = True
 
     def __init__(self, scene: Scene) -> None:
+        from ddvs_service.registration.general import GeneralRegistration
         from ddvs_service.registration.general_tracker import GeneralTracker
+        from ddvs_service.registration.global_init import GlobalInitConfig
+        from ddvs_service.registration.reacquisition import Reacquisition
+        from ddvs_service.registration.session import TrackingSession
 
         if scene.reference is None:
             raise ValueError("the estimated geometry needs the reference image")
@@ -97,17 +102,18 @@ class EstimatedGeometry:
         w, h = PAPER_ROI_SIZE
         roi = (round(intr.cx - 0.5 * (w - 1)), round(intr.cy - 0.5 * (h - 1)), w, h)
         self.control_point = (intr.cx, intr.cy)
-        self.tracker = GeneralTracker.prepare(scene.reference, roi)
+        engine = GeneralRegistration.prepare(scene.reference, roi)
+        self.session = TrackingSession(GeneralTracker(engine), Reacquisition(engine.planar, engine, GlobalInitConfig()))
         self.iterations: list[int] = []
 
     def __call__(self, frame: Frame) -> tuple[F64, F64, float]:
         if frame.image is None:
             raise ValueError("the estimated geometry needs rendered frames")
-        result = self.tracker.track(frame.image)
-        if not result.converged:
-            raise TrackingLost(f"frame {frame.index}: {result.reason} (flags {result.flags})")
-        self.iterations.append(sum(result.iterations))
-        return result.G, result.e, result.rho_at(self.control_point)
+        est = self.session.estimate(frame.image, self.control_point)
+        if not est.tracked:
+            raise TrackingLost(f"frame {frame.index}: {est.message}")
+        self.iterations.append(est.iterations)
+        return est.G, est.e, est.rho
 
 
 GEOMETRY_SOURCES: dict[str, Callable[[Scene], GeometrySource]] = {

@@ -15,6 +15,7 @@ from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.global_init import GlobalInitConfig, PlanarRefiner
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.reacquisition import Reacquisition
+from ddvs_service.registration.session import TrackingSession
 from ddvs_service.registration.warp_distance import warp_rms
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.pipeline import ServoPipeline
@@ -61,32 +62,33 @@ def test_off_reports_it_and_runs_no_initialiser(scene: PlanarScene) -> None:
     assert not acquire.enabled and acquire.initializer is None
 
 
-def test_general_tracker_reacquires_only_when_asked(scene: PlanarScene) -> None:
-    """Re-acquisition on (the default): a 60° rotation is found on the first frame. Off: the tracker starts from
-    its last good estimate (identity on the first frame), which a 60° rotation is out of reach of."""
+def test_general_session_reacquires_only_when_asked(scene: PlanarScene) -> None:
+    """Re-acquisition on: a 60° rotation is found on the first frame. Off: the tracker starts from its last good
+    estimate (identity on the first frame), which a 60° rotation is out of reach of."""
     H = rotated(scene, 60.0)
     current = scene.render(H)
     engine = GeneralRegistration.prepare(scene.render(), ROI)
-    on = GeneralTracker(engine).track(current)
-    assert on.converged, on.reason
-    assert warp_rms(on.G, H, ROI) < 0.1
-    off = GeneralTracker(engine, Reacquisition(engine.planar, engine, config=None)).track(current)
-    assert not (off.converged and warp_rms(off.G, H, ROI) < 1.0)
+    on = TrackingSession(GeneralTracker(engine), Reacquisition(engine.planar, engine, GlobalInitConfig()))
+    found = on.estimate(current, CENTRE)
+    assert found.tracked, found.message
+    assert warp_rms(found.G, H, ROI) < 0.1
+    off = TrackingSession(GeneralTracker(engine), Reacquisition(engine.planar, engine, config=None))
+    missed = off.estimate(current, CENTRE)
+    assert not (missed.tracked and warp_rms(missed.G, H, ROI) < 1.0)
 
 
 @pytest.mark.parametrize("model", ["planar", "general"])
 def test_service_global_init_setting_is_honoured_by_both_models(scene: PlanarScene, model: str) -> None:
     from ddvs_service.service.config import RegistrationSettings
-    from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
+    from ddvs_service.service.estimators import tracking_session
 
     H = rotated(scene, 60.0)
     reference, current = scene.render(), scene.render(H)
-    estimator = GeneralEstimator if model == "general" else PlanarEstimator
-    on = estimator(reference, ROI, RegistrationSettings(model=model)).estimate(current, CENTRE)
+    on = tracking_session(reference, ROI, RegistrationSettings(model=model)).estimate(current, CENTRE)  # type: ignore[arg-type]
     assert on.tracked, on.message
     assert warp_rms(on.G, H, ROI) < 0.1
-    off = estimator(reference, ROI, RegistrationSettings(model=model, global_init=False)).estimate(current,
-                                                                                                 (159.5, 119.5))
+    settings = RegistrationSettings(model=model, global_init=False)  # type: ignore[arg-type]
+    off = tracking_session(reference, ROI, settings).estimate(current, CENTRE)
     assert not (off.tracked and warp_rms(off.G, H, ROI) < 1.0)
 
 
@@ -176,20 +178,20 @@ def test_a_tracked_frame_after_a_lost_one_needs_no_search(scene: PlanarScene) ->
         servo.close()
 
 
-def test_general_estimator_reacquires_from_the_last_good_estimate_under_an_occluder(scene: PlanarScene) -> None:
-    """The general tracker declared LOST (textureless frames), then the view comes back with 30 % of the template
-    covered by a foreign object, where the global initialiser's cost is above its threshold: the first frame is
-    tracked from the last good estimate (`LastGoodFirst`), within 1 px RMS of the unoccluded view's estimate (the
-    occluder biases the general model's fit by about half a pixel here)."""
+def test_general_session_reacquires_from_the_last_good_estimate_under_an_occluder(scene: PlanarScene) -> None:
+    """The general model LOST (textureless frames), then the view comes back with 30 % of the template covered by a
+    foreign object, where the global initialiser's cost is above its threshold: the first frame is tracked from the
+    last good estimate (`registration.session`), within 1 px RMS of the unoccluded view's estimate (the occluder
+    biases the general model's fit by about half a pixel here)."""
     from ddvs_service.service.config import RegistrationSettings
-    from ddvs_service.service.estimators import GeneralEstimator
+    from ddvs_service.service.estimators import tracking_session
     from sim.conditions import FrameContext, Occluder, apply
 
-    estimator = GeneralEstimator(scene.render(), ROI, RegistrationSettings(model="general"))
+    estimator = tracking_session(scene.render(), ROI, RegistrationSettings(model="general"))
     view = scene.render(scene.homography(so3_exp(np.radians([0.0, 0.0, 2.0])), np.array([0.005, 0.0, 0.0])))
     clean = estimator.estimate(view, CENTRE)
     assert clean.tracked, clean.message
-    for _ in range(5):  # the tracker declares LOST after `lost_after` failed frames
+    for _ in range(5):
         assert not estimator.estimate(np.full_like(view, 128.0), CENTRE).tracked
     occluded = apply((Occluder(fraction=0.3, start_frame=0, enter_frames=1),), view, FrameContext(5, 0.2, ROI))
     found = estimator.estimate(occluded, CENTRE)
@@ -205,25 +207,20 @@ def test_the_worker_reacquires_from_the_last_good_estimate_under_an_occluder(sce
     is above its threshold under such an occluder), and the next frame is tracked from there, near the unoccluded
     view's estimate (1 px RMS: the occluder biases the general model's fit by about half a pixel)."""
     from ddvs_service.service.config import RegistrationSettings
-    from ddvs_service.service.estimators import GeneralEstimator, PlanarEstimator
+    from ddvs_service.service.estimators import tracking_session
     from sim.conditions import FrameContext, Occluder, apply
 
     settings = RegistrationSettings(model=model)  # type: ignore[arg-type]
-    estimator = (PlanarEstimator(scene.render(), ROI, settings, background=True) if model == "planar" else
-                 GeneralEstimator(scene.render(), ROI, settings, background=True))
-    if isinstance(estimator, PlanarEstimator):
-        estimator.assume(np.eye(3))
+    estimator = tracking_session(scene.render(), ROI, settings, background=True)
+    estimator.assume(np.eye(3))
     worker = estimator.acquisition
     assert isinstance(worker, BackgroundReacquisition)
     try:
         view = scene.render(scene.homography(so3_exp(np.radians([0.0, 0.0, 2.0])), np.array([0.005, 0.0, 0.0])))
         clean = estimator.estimate(view, CENTRE)
-        if model == "general":  # its first frame is initialised globally, on the worker: adopted on the next one
-            assert worker.wait_idle(300.0)
-            clean = estimator.estimate(view, CENTRE)
         assert clean.tracked, clean.message
         adopted = worker.adopted
-        for _ in range(5):  # the general tracker declares LOST after `lost_after` failed frames
+        for _ in range(5):
             assert not estimator.estimate(np.full_like(view, 128.0), CENTRE).tracked
             assert worker.wait_idle(300.0)
         occluded = apply((Occluder(fraction=0.3, start_frame=0, enter_frames=1),), view, FrameContext(5, 0.2, ROI))

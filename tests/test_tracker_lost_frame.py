@@ -18,7 +18,6 @@ from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.registration.general_result import GeneralResult
 from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.planar import PlanarRegistration
-from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.registration.result import RegistrationResult
 from ddvs_service.registration.tracker import Tracker
 from ddvs_service.registration.warp_distance import warp_rms
@@ -101,7 +100,7 @@ def test_a_jump_within_reach_is_still_recovered_within_the_frame(scene: PlanarSc
     """3° and 1 cm in one frame from a still camera: the planar tracker's warm attempt gives up and its retry over
     the pyramid, the robust scale re-estimated, converges on the truth within the frame (fewer iterations than
     before: 30, then 4 + 2 + 2). (The general tracker's retry, under the capped scale, needs 15–19 iterations at its
-    coarsest level: it gives up and the jump is re-acquired after `lost_after` frames.)"""
+    coarsest level: it gives up and the session re-acquires the jump on the next frame.)"""
     reference = grey(scene.render())
     engine = CountingPlanar.prepare(reference, ROI, config=CONFIG)
     tracker = Tracker(engine)
@@ -123,8 +122,7 @@ def test_a_lost_frame_costs_the_general_tracker_a_bounded_number_of_iterations(s
     engine = CountingGeneral.prepare(reference, ROI, config=config)
     bound = 2 * CONFIG.tracking_give_up_iterations
     for name, frame in lost_frames(scene).items():
-        tracker = GeneralTracker(engine, Reacquisition(engine.planar, engine, config=None),
-                                 rho=np.zeros(engine.basis.size))
+        tracker = GeneralTracker(engine, rho=np.zeros(engine.basis.size))
         for _ in range(3):
             assert tracker.track(reference).converged
         engine.runs = []

@@ -13,7 +13,7 @@ FLAG_NO_PARALLAX = "no_parallax"  # parallax below detection: planar target or t
 FLAG_AMBIGUOUS = "ambiguous_parallax"  # a different parallax field fits almost as well
 FLAG_LOW_TEXTURE = "low_texture"  # degenerate normal equations
 FLAG_OCCLUSION = "occlusion"  # too few inliers / too little of the ROI visible
-FLAG_LOST = "lost"  # the tracker lost the target and will re-acquire on the next frame
+FLAG_LOST = "lost"  # no confident start: the global initialiser found none
 FLAG_DIVERGED = "diverged"
 
 
@@ -28,7 +28,6 @@ class GeneralConfig:
     - `min_parallax_snr`: the parallax must also exceed this many standard errors.
     - `min_margin`: relative cost gap to a different parallax solution below which the result is flagged ambiguous.
     - `distinct_epipole_deg`: two solutions whose epipole directions differ by more than this are different.
-    - `lost_after`: consecutive failed frames after which the tracker declares LOST and re-acquires.
     - `interpolation`: how the full-resolution steps sample the current image, "bspline" (the interpolating cubic
       B-spline, `kernels.bspline`; coarser levels keep Keys) or "keys" (Keys' cubic convolution). Near the paper's
       equilibrium the warp must be right to ~0.002 px for the control error (16) to be within 1e-4; there Keys' own
@@ -47,7 +46,6 @@ class GeneralConfig:
     min_parallax_snr: float = 10.0
     min_margin: float = 0.002
     distinct_epipole_deg: float = 20.0
-    lost_after: int = 3
     interpolation: Interpolation = "bspline"
 
     def __post_init__(self) -> None:
@@ -57,7 +55,5 @@ class GeneralConfig:
             raise ValueError(f"estimate_levels must be ≥ 1, got {self.estimate_levels}")
         if not self.min_parallax_px >= 0.0 or not self.min_parallax_snr >= 0.0:
             raise ValueError("min_parallax_px and min_parallax_snr must be ≥ 0")
-        if self.lost_after < 1:
-            raise ValueError(f"lost_after must be ≥ 1, got {self.lost_after}")
         if self.interpolation not in ("keys", "bspline"):
             raise ValueError(f"interpolation must be 'keys' or 'bspline', got {self.interpolation!r}")

@@ -1,9 +1,11 @@
 """Stateful general tracker: eq. (2) `p ∝ G p* + ρ*(p*) e` through a video stream, ρ* kept in the reference frame.
 
-- First frame (or after LOST): `G` from the re-acquisition (`reacquisition.Reacquisition`: the global initialiser
-  on this tracker's engine; when it is off, the last good `G`, identity at first); when no ρ* is known yet it is
-  estimated on that frame (several epipole starts, `general.GeneralRegistration.estimate`), else `e` restarts from
-  0 with ρ* kept.
+The general model's tracker as `registration.session.TrackingSession` drives it, with the same face as the planar
+`Tracker` (`reset`, `track`, `G`, `photometric`, `residual`); where a frame starts after a reference or a loss (the
+global initialiser, the last good estimate) is the session's decision, not this tracker's.
+- The first frame after `reset(G)`: when no ρ* is known yet it is estimated on that frame from `G` (several
+  epipole starts, `general.GeneralRegistration.estimate`), else `e` starts from 0 with ρ* kept, over the whole
+  pyramid.
 - Every other frame: `G`, `e`, `S`, `β` warm-started from the last good frame, ρ* held fixed (13 unknowns with one
   gain), so ρ* cannot drift when the camera stops translating (`e → 0`). Like the planar `Tracker`, the frame is
   solved on the finest `tracking_levels` pyramid levels first, from the constant-velocity prediction when
@@ -11,17 +13,15 @@
   `M = G_{k−1} G_{k−2}⁻¹` (current-image pixels) applied once more, `(G, e) = (M G_{k−1}, M e_{k−1})` (eq. (2):
   `P_k = M P_{k−1}`); when that fails, again from the last good estimate over the whole pyramid, under the capped
   robust scale (unlike the planar `Tracker`'s retry, so a jump of a few pixels within one frame is not recovered
-  within the frame but re-acquired after `lost_after` frames). These warm-started frames converge at
+  within the frame but re-acquired by the session on the next one). These warm-started frames converge at
   `config.base.tracking_step_tolerance_px`, and both attempts give up early on a hopeless frame (as the planar
-  `Tracker`: the stream refines its estimate again on every frame, and the frame that discovers a loss costs about
-  twice `tracking_give_up_iterations`, not `max_iterations` at every level of both attempts).
+  `Tracker`: the frame that discovers a loss costs about twice `tracking_give_up_iterations`).
   The information on ρ* (given `e`) of each converged frame is added to `rho_information`; it grows only while
   the camera translates.
 - Integrity (`registration.integrity`, as the planar `Tracker`): the robust scale of the warm-started frames is
   capped at a multiple of the last good frames' and a converged fit whose own scale or whose corners jumped
   implausibly counts as not converged.
-- A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags);
-  `lost_after` consecutive failures declare LOST (flag `lost`), and the next frame re-acquires `G` and `e` globally.
+- A frame that does not converge leaves the state unchanged and is reported (`converged = False`, reason, flags).
 `track` never raises and never returns non-finite numbers.
 """
 
@@ -30,45 +30,30 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ddvs_service.lie import sl3_normalize
 from ddvs_service.registration.general import GeneralRegistration
 from ddvs_service.registration.general_basis import ParallaxBasis
-from ddvs_service.registration.general_config import FLAG_DIVERGED, FLAG_LOST, GeneralConfig
+from ddvs_service.registration.general_config import FLAG_DIVERGED, GeneralConfig
 from ddvs_service.registration.general_result import GeneralResult
-from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.images import checked_grey
 from ddvs_service.registration.integrity import Integrity
-from ddvs_service.registration.reacquisition import Reacquisition
 from ddvs_service.registration.reference import Roi
+from ddvs_service.registration.residual import residual_image
 
 F64 = NDArray[np.float64]
 
 
 class GeneralTracker:
-    """Track the ROI of the engine's reference (same face as the planar `Tracker`). `acquire`: how the first frame
-    and a frame after LOST are started (the global initialiser with its default settings, on this engine, when
-    None). `rho` optionally gives known ρ* coefficients (`ParallaxBasis` of `config.rho_degree`), e.g. from an
-    earlier session."""
+    """Track the ROI of the engine's reference (module docstring). `rho` optionally gives known ρ* coefficients
+    (`ParallaxBasis` of `config.rho_degree`), e.g. from an earlier session; `G`: where the first frame starts."""
 
-    def __init__(
-        self,
-        engine: GeneralRegistration,
-        acquire: Reacquisition | None = None,
-        rho: ArrayLike | None = None,
-    ) -> None:
+    def __init__(self, engine: GeneralRegistration, rho: ArrayLike | None = None, G: ArrayLike | None = None) -> None:
         self._problem = engine
-        self._acquire = acquire or Reacquisition(engine.planar, engine, GlobalInitConfig())
         n = self._problem.basis.size
         self._rho: F64 | None = None if rho is None else np.asarray(rho, dtype=np.float64).reshape(n).copy()
         self._information = np.zeros((n, n))
-        self._G: F64 | None = None  # None: (re)acquire globally on the next frame
-        self._last_G = np.eye(3)  # the last good estimate, kept through LOST
-        self._G_before: F64 | None = None  # the good estimate before `_G` (None: no velocity known)
-        self._e = np.zeros(3)
-        self._gains = np.ones(self._problem.grid)
-        self._beta = 0.0
-        self._scale: float | None = None
-        self._failures = 0
-        self._integrity = Integrity(engine.roi)
+        self._integrity = Integrity(engine.roi)  # kept through resets: the reference does not change
+        self.reset(G)
 
     @classmethod
     def prepare(
@@ -79,13 +64,27 @@ class GeneralTracker:
         mask: ArrayLike | None = None,
         rho: ArrayLike | None = None,
     ) -> GeneralTracker:
-        """A tracker on its own engine (`GeneralRegistration.prepare`), re-acquiring with the default settings."""
+        """A tracker on its own engine (`GeneralRegistration.prepare`)."""
         return cls(GeneralRegistration.prepare(reference, roi=roi, mask=mask, config=config), rho=rho)
+
+    @property
+    def engine(self) -> GeneralRegistration:
+        return self._problem
 
     @property
     def basis(self) -> ParallaxBasis:
         """The parallax basis of ρ*."""
         return self._problem.basis
+
+    @property
+    def G(self) -> F64:
+        """Current estimate (3×3, det 1), reference → current pixels."""
+        return self._G.copy()
+
+    @property
+    def photometric(self) -> tuple[F64, float]:
+        """The gains `S` (node values, shape `gain_grid`) and bias `β` of the current state (eq. (4))."""
+        return self._gains.copy(), self._beta
 
     @property
     def rho_coeffs(self) -> F64 | None:
@@ -97,15 +96,20 @@ class GeneralTracker:
         """Accumulated information on the ρ* coefficients (given `e`)."""
         return self._information.copy()
 
-    @property
-    def lost(self) -> bool:
-        """True when the next frame will be re-acquired globally."""
-        return self._G is None
+    def adopt_rho(self, rho: ArrayLike) -> None:
+        """Hold ρ* at the coefficients `rho` (another tracker's of the same reference and basis) from now on."""
+        self._rho = np.asarray(rho, dtype=np.float64).reshape(self._problem.basis.size).copy()
 
-    def lose(self) -> None:
-        """Re-acquire `G` and `e` globally on the next frame (ρ* is kept): the caller found the last fit wrong."""
-        self._G = self._G_before = None
-        self._failures = 0
+    def reset(self, G: ArrayLike | None = None) -> None:
+        """Restart from `G` (identity when None) with `e = 0`, unit gains and zero bias, ρ* kept: the next frame is
+        solved over the whole pyramid, and estimates ρ* when none is known (module docstring)."""
+        self._G = np.eye(3) if G is None else sl3_normalize(np.asarray(G, dtype=np.float64).reshape(3, 3))
+        self._G_before: F64 | None = None  # the good estimate before `_G` (None: no velocity known)
+        self._e = np.zeros(3)
+        self._gains = np.ones(self._problem.grid)
+        self._beta = 0.0
+        self._scale: float | None = None
+        self._fresh = True  # the next frame starts from `reset`'s `G`
 
     def track(self, current: ArrayLike) -> GeneralResult:
         """Register `current` (module docstring); on failure keep the state and report why."""
@@ -115,32 +119,38 @@ class GeneralTracker:
             return self._failure(f"error: {type(exc).__name__}: {exc}", [FLAG_DIVERGED])
         finite = all(np.all(np.isfinite(x)) for x in (result.G, result.e, result.rho_coeffs, result.S, [result.beta]))
         if not finite:
-            return self._count_failure(self._failure(f"non-finite estimate ({result.reason})", [FLAG_DIVERGED]))
+            return self._failure(f"non-finite estimate ({result.reason})", [FLAG_DIVERGED])
         if not result.converged:
-            return self._count_failure(result)
-        self._G_before = self._G
-        self._last_G = result.G
+            self._G_before = None
+            return result
+        if self._rho is None:
+            self._rho = result.rho_coeffs.copy()
+        self._G_before = None if self._fresh else self._G
         self._G, self._e, self._gains, self._beta = result.G, result.e, result.S, result.beta
+        self._fresh = False
         self._integrity.accept(result.scale, result.inlier_ratio)
         self._scale = max(result.scale, self._integrity.config.min_anchor) if np.isfinite(result.scale) else None
         self._information = self._information + result.rho_information
         result.rho_information = self._information.copy()
-        self._failures = 0
         return result
+
+    def residual(self, current: ArrayLike) -> NDArray[np.float32]:
+        """The residual image of `current` over the ROI under the current state, parallax included
+        (`registration.residual`); ρ* = 0 until estimated."""
+        prepared, config = self._problem.prepared, self._problem.config.base
+        x, y, w, h = prepared.roi
+        v, u = np.mgrid[y:y + h, x:x + w].astype(np.float64)
+        coeffs = np.zeros(self.basis.size) if self._rho is None else self._rho
+        rho = self.basis.rho(coeffs, np.c_[u.ravel(), v.ravel()]).reshape(h, w)
+        return residual_image(prepared.image, np.asarray(current), prepared.roi, self._G, self._gains, self._beta,
+                              config.gamma, config.defocus_px, parallax=(rho, self._e))
 
     def _track(self, current: NDArray[np.float32]) -> GeneralResult:
         problem = self._problem
-        if self._G is None:
-            acquisition = self._acquire(current)
-            G0 = self._last_G if acquisition.status == "OFF" else acquisition.G
-            if G0 is None:
-                return self._failure("LOST: the global initialiser found no confident estimate", [FLAG_LOST])
+        if self._fresh:
             if self._rho is None:
-                result = problem.estimate(current, G0)
-                if result.converged:
-                    self._rho = result.rho_coeffs.copy()
-                return result
-            return problem.track(current, G0, np.zeros(3), self._rho)
+                return problem.estimate(current, self._G)
+            return problem.track(current, self._G, np.zeros(3), self._rho)
         assert self._rho is not None
         G0, e0 = self._prediction()
         photometric = (self._gains, self._beta, self._scale)
@@ -162,7 +172,6 @@ class GeneralTracker:
     def _prediction(self) -> tuple[F64, F64]:
         """Start `(G, e)` of the next frame: the last estimate, or its constant-velocity extrapolation (module
         docstring)."""
-        assert self._G is not None
         if self._G_before is None or not self._problem.config.base.predict_motion:
             return self._G, self._e
         M = self._G @ np.linalg.inv(self._G_before)
@@ -171,21 +180,13 @@ class GeneralTracker:
             return self._G, self._e
         return G, e
 
-    def _count_failure(self, result: GeneralResult) -> GeneralResult:
-        self._G_before = None
-        self._failures += 1
-        if self._failures >= self._problem.config.lost_after and self._G is not None:
-            self._G = None
-            result.flags.append(FLAG_LOST)
-            result.reason += f"; LOST after {self._failures} failed frames: re-acquiring on the next frame"
-        return result
-
     def _failure(self, reason: str, flags: list[str]) -> GeneralResult:
         """The last good state, reported as not converged."""
+        self._G_before = None
         n = self._problem.basis.size
         return GeneralResult(
-            G=np.eye(3) if self._G is None else self._G.copy(), e=self._e.copy(),
-            rho_coeffs=np.zeros(n) if self._rho is None else self._rho.copy(), basis=self._problem.basis,
-            S=self._gains.copy(), beta=self._beta, rho_information=self._information.copy(), converged=False,
-            reason=reason, flags=list(flags),
+            G=self._G.copy(), e=self._e.copy(), rho_coeffs=np.zeros(n) if self._rho is None else self._rho.copy(),
+            basis=self._problem.basis, S=self._gains.copy(), beta=self._beta,
+            rho_information=self._information.copy(), converged=False, reason=reason, flags=list(flags),
+            failed=True,
         )

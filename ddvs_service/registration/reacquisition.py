@@ -21,6 +21,7 @@ from ddvs_service.registration.planar import PlanarRegistration
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
+LAST_GOOD = "the last good estimate"  # the reason of an OK answer that hands back the caller's own last good estimate
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,11 @@ class Acquisition:
 class Reacquisition:
     """Re-acquisition for a tracker on `engine` (and `general`, the general model's engine, which the initialiser's
     step 5 then uses), with the initialiser's `config`; None: off. `adopted` counts the OK results handed over.
-    `prepare`: build the initialiser's reference side now, with the reference, rather than in the first search."""
+    `prepare`: build the initialiser's reference side now, with the reference, rather than in the first search.
+    `beside`: the search runs beside the caller's loop (`service.reacquirer`) and makes the attempt from the
+    caller's last good estimate itself; here it runs within the call, and the caller makes that attempt first."""
+
+    beside = False
 
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
                  config: GlobalInitConfig | None = None, prepare: bool = True) -> None:
@@ -58,9 +63,10 @@ class Reacquisition:
         """Never: this search runs within the call (`service.reacquirer` searches beside the caller)."""
         return False
 
-    def __call__(self, current: F32, tracking_G: F64 | None = None) -> Acquisition:
+    def __call__(self, current: F32, tracking_G: F64 | None = None, start: F64 | None = None) -> Acquisition:
         """Initialise `current` against the engine's reference and ROI; `tracking_G`: the tracker's own estimate,
-        to report a strong contradiction."""
+        to report a strong contradiction. `start` (the caller's last good estimate) matters only `beside` the loop:
+        within the call the caller has tried it already."""
         found = self.search(current, tracking_G)
         if found.status == "OK":
             self.adopted += 1

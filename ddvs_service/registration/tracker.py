@@ -29,6 +29,7 @@ from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.integrity import Integrity
 from ddvs_service.registration.planar import PlanarRegistration
 from ddvs_service.registration.reference import Roi
+from ddvs_service.registration.residual import residual_image
 from ddvs_service.registration.result import RegistrationResult
 
 
@@ -65,6 +66,12 @@ class Tracker:
     def photometric(self) -> tuple[NDArray[np.float64], float]:
         """The gains `S` (node values, shape `gain_grid`) and bias `β` of the current state (eq. (4))."""
         return self._gains.copy(), self._beta
+
+    def residual(self, current: ArrayLike) -> NDArray[np.float32]:
+        """The residual image of `current` over the ROI under the current state (`registration.residual`)."""
+        prepared, config = self._problem.prepared, self._problem.config
+        return residual_image(prepared.image, np.asarray(current), prepared.roi, self._G, self._gains, self._beta,
+                              config.gamma, config.defocus_px)
 
     def reset(self, G: ArrayLike | None = None) -> None:
         """Restart from `G` (identity when None; any scale, positive determinant), unit gains, zero bias."""

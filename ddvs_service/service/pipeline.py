@@ -1,12 +1,13 @@
 """One servo step per frame, without I/O: register against the reference, compute the law, update the state.
 
-Data flow: grey frame → estimator (planar or general, warm-started; global initialisation on the first frame after a
-reference and while LOST, by default on a worker thread beside this one: a frame that needs it is answered at once,
-untracked — zero twist — and the worker's pose is adopted on a later frame once the tracker registers that frame
-from it; `service.estimators`, `service.reacquirer`) → control error and twist from `G`, `e`, `ρ*` of the control
-point → error guard (a tracked frame whose error jumped from the last trusted one is a suspect fit: treated as lost,
-and the estimator re-acquires on the next frame; `guard.ErrorGuard`) → state machine. The twist is in the current
-camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state is SERVOING.
+Data flow: grey frame → tracking session (planar or general model, one lifecycle: warm-started; re-acquired on the
+first frame after a reference and while LOST, by default on a worker thread beside this one: a frame that needs it
+is answered at once, untracked — zero twist — and the worker's pose is adopted on a later frame once the tracker
+registers that frame from it; `registration.session`, `service.estimators`, `service.reacquirer`) → control error
+and twist from `G`, `e`, `ρ*` of the control point → error guard (a tracked frame whose error jumped from the last
+trusted one is a suspect fit: treated as lost, and the session re-acquires on the next frame; `guard.ErrorGuard`)
+→ state machine. The twist is in the current camera frame (OpenCV axes, m/s and rad/s) and is zero unless the state
+is SERVOING.
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlLaw, ControlOutput
 from ddvs_service.registration.images import to_grey
 from ddvs_service.registration.reacquisition import Reacquisition
+from ddvs_service.registration.session import Estimate, TrackingSession
 from ddvs_service.service.config import ServiceConfig
-from ddvs_service.service.estimators import Estimate, GeneralEstimator, PlanarEstimator
+from ddvs_service.service.estimators import tracking_session
 from ddvs_service.service.guard import ErrorGuard
 from ddvs_service.service.settling import Figures, SettleWindow, error_jacobian
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine
@@ -82,7 +84,7 @@ class ServoPipeline:
         self.reference: NDArray[np.float32] | None = None
         self.roi: Roi | None = None
         self.rho_coeffs: list[float] = []
-        self._estimator: PlanarEstimator | GeneralEstimator | None = None
+        self._estimator: TrackingSession | None = None
         self._law: ControlLaw | None = None
         self.guard = ErrorGuard()
         self._window = SettleWindow(control.settle_frames, control.noise_frames, control.stop_threshold)
@@ -120,7 +122,7 @@ class ServoPipeline:
                       rho_coeffs: list[float] | None = None, last_good: NDArray | None = None) -> Roi:
         """Adopt `image` as the reference I*; the first frame after it is globally initialised unless `G0` (e.g.
         identity when the reference is the current frame) is given, or re-acquired from `last_good` first (an
-        earlier process's last good estimate, persisted across restarts; not trusted: `PlanarEstimator.resume`).
+        earlier process's last good estimate, persisted across restarts; not trusted: `TrackingSession.resume`).
         `rho_coeffs`: a known parallax field of this reference (general model; persisted across restarts). Returns
         the ROI used."""
         if self.intrinsics is None:
@@ -139,17 +141,12 @@ class ServoPipeline:
         assert self.roi is not None
         return self.roi
 
-    def _build_estimator(self, grey: NDArray[np.float32], roi: Roi | None) -> PlanarEstimator | GeneralEstimator:
+    def _build_estimator(self, grey: NDArray[np.float32], roi: Roi | None) -> TrackingSession:
         assert self.intrinsics is not None
         roi = roi if roi is not None else template_roi(self.config, self.intrinsics)
-        settings = self.config.registration
-        estimator: PlanarEstimator | GeneralEstimator
-        background = self.background_reacquisition
         with GATE.hold():
-            if settings.model == "general":
-                estimator = GeneralEstimator(grey, roi, settings, self.rho_coeffs, background)
-            else:
-                estimator = PlanarEstimator(grey, roi, settings, background)
+            estimator = tracking_session(grey, roi, self.config.registration, self.background_reacquisition,
+                                         self.rho_coeffs)
         self.close()
         self.reference, self.roi, self._estimator = grey, roi, estimator
         self.guard.reset()
@@ -235,8 +232,8 @@ class ServoPipeline:
 
     def residual(self, frame: NDArray) -> NDArray[np.float32] | None:
         """The registration's residual image of `frame` over the ROI (warped current − reference after the
-        photometric model, grey levels; `registration.residual`) under the newest estimate; None without a reference
-        and with the general model (not available yet)."""
+        photometric model, grey levels; `registration.residual`: eq. (2)'s warp for the general model) under the
+        newest estimate; None without a reference."""
         if self._estimator is None:
             return None
         with GATE.hold():

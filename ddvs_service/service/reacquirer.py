@@ -35,14 +35,13 @@ from numpy.typing import NDArray
 from ddvs_service.registration.general import GeneralRegistration
 from ddvs_service.registration.global_init import GlobalInitConfig
 from ddvs_service.registration.planar import PlanarRegistration
-from ddvs_service.registration.reacquisition import Acquisition, Reacquisition
+from ddvs_service.registration.reacquisition import LAST_GOOD, Acquisition, Reacquisition
 from kernels.exclusive import GATE
 
 log = logging.getLogger("ddvs.reacquisition")
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 SEARCHING = "searching in the background"
-LAST_GOOD = "the last good estimate"  # the reason of an OK answer from `retry`: the caller tracks on from its state
 Retry = Callable[[NDArray[np.float32], NDArray[np.float64]], bool]  # (frame, start) -> registered from `start`
 
 
@@ -50,6 +49,8 @@ class BackgroundReacquisition(Reacquisition):
     """`Reacquisition` on a worker thread (module docstring); `searches` counts the searches finished, `adopted` the
     initialiser's OK results handed over (not `LAST_GOOD` answers). `retry`: the caller's attempt from its last good
     estimate, run on the worker (it must use the worker's engines only)."""
+
+    beside = True
 
     def __init__(self, engine: PlanarRegistration, general: GeneralRegistration | None = None,
                  config: GlobalInitConfig | None = None, retry: Retry | None = None) -> None:
