@@ -72,7 +72,7 @@ def configs(transport: str, certs: Path) -> dict[str, dict[str, Any]]:
         return {"router": router, "plant": client_config("plant", [endpoint]),
                 "service": client_config("service", [endpoint])}
     endpoint = f"tls/localhost:{port}"
-    router = router_config(KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, "router"))
+    router = router_config(KEYS, certificate_identities(KEYS.base), [endpoint], TlsFiles.for_role(certs, "router"))
     if transport == "tls":
         del router["access_control"]
     return {"router": router, **{role: client_config(role, [endpoint], TlsFiles.for_role(certs, role))
@@ -194,8 +194,8 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory(prefix="bench_tls_") as tmp:
         work = Path(tmp)
-        subprocess.run(["bash", str(ROOT / "scripts" / "make_dev_certs.sh"), str(work / "certs")], check=True,
-                       capture_output=True)
+        subprocess.run(["bash", str(ROOT / "scripts" / "make_dev_certs.sh"), str(work / "certs"), "--robot",
+                        KEYS.robot, "--prefix", KEYS.prefix], check=True, capture_output=True)
         pooled: dict[str, list[int]] = {t: [] for t in TRANSPORTS}
         for _ in range(args.rounds):
             for transport in TRANSPORTS:

@@ -2,9 +2,11 @@
 network of one robot, or of a fleet (the robots one `ddvs serve` process serves), in one step.
 
 Writes into `OUT/` (docs/security.md, "Securing a robot"):
-- the certificates per purpose (`protocol/pki.py`): `ca/`, `router/` (serverAuth, the router endpoint's host among its
-  names), one directory per role (clientAuth, CN = role);
-- `router/passwords.txt` (a random password per role, owner-only) for the user/password variant;
+- the certificates per purpose (`protocol/pki.py`), all of this robot's own CA: `ca/`, `router/` (serverAuth, the
+  router endpoint's host among its names, CN `router@<prefix>/<NAME>`), one directory per role (clientAuth, CN
+  `<role>@<prefix>/<NAME>`);
+- `router/passwords.txt` (a random password per user `<role>@<prefix>/<NAME>`, owner-only) for the user/password
+  variant;
 - every configuration (`protocol/security.py::write_configs`): `router-mtls.json5`, `router-password.json5` and per
   role `<role>-mtls.json5`, `<role>-password.json5` (with its password, owner-only), all for robot `<prefix>/<NAME>`.
 
@@ -14,9 +16,10 @@ robot's keys, and the service and the operator the command key of the process (`
 
 Paths inside the configurations are `OUT/...` as given: run the nodes from the directory `ddvs security init` ran in
 (or give an absolute OUT, or `--certs-dir` for where the files will be installed). Idempotent: existing certificates
-and passwords are kept. `--configs-only` writes the configurations with `CHANGE-ME-<role>` passwords and issues
-nothing (how `configs/security/` is made: `ddvs security init --robot robot0 --certs-dir certs --configs-only
-configs/security`).
+and passwords are kept. One OUT holds one robot's (or one fleet's) files: an OUT holding another robot's CA or
+configurations is refused, never reused (a fleet's scope is `<prefix>/<process>`). `--configs-only` writes the
+configurations with `CHANGE-ME-<role>` passwords and issues nothing (how `configs/security/` is made: `ddvs security
+init --robot robot0 --certs-dir certs --configs-only configs/security`).
 """
 
 from __future__ import annotations
@@ -50,8 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="write the configurations only (placeholder passwords, no certificates)")
 
 
-def _passwords(path: Path, roles: list[str]) -> dict[str, str]:
-    """The router's password file `path` (lines `user:password`), completed with a random password per missing role."""
+def _passwords(path: Path, users: list[str]) -> dict[str, str]:
+    """The router's password file `path` (lines `user:password`), completed with a random password per missing user."""
     import secrets
 
     known: dict[str, str] = {}
@@ -60,17 +63,31 @@ def _passwords(path: Path, roles: list[str]) -> dict[str, str]:
             user, sep, password = line.partition(":")
             if sep:
                 known[user] = password
-    for role in roles:
-        known.setdefault(role, secrets.token_urlsafe(24))
+    for user in users:
+        known.setdefault(user, secrets.token_urlsafe(24))
     path.write_text("".join(f"{user}:{password}\n" for user, password in known.items()), encoding="utf-8")
     path.chmod(0o600)
     return known
 
 
+def _refuse_another_robots(out: Path, scope: str) -> None:
+    """ValueError when `out` already holds another robot's CA or router configurations: one directory, one robot (or
+    fleet), so that re-running init never mixes two robots' certificates or rules."""
+    from ddvs_service.protocol.pki import check_ca
+    from ddvs_service.protocol.security import configured_scopes
+
+    if (out / "ca" / "ca.pem").is_file():
+        check_ca(out / "ca" / "ca.pem", scope)
+    others = sorted(configured_scopes(out) - {scope})
+    if others:
+        raise ValueError(f"{out} holds the configurations of {', '.join(others)}, not of {scope}: each robot's files "
+                         f"go into their own directory; give another OUT for {scope}")
+
+
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.protocol.keys import Keys
     from ddvs_service.protocol.pki import DEFAULT_ROUTER_NAMES, issue_certificates
-    from ddvs_service.protocol.security import ROLES, Endpoint, Fleet, write_configs
+    from ddvs_service.protocol.security import ROLES, Endpoint, Fleet, identity_name, write_configs
 
     roles = [r for item in args.roles or [",".join(ROLES)] for r in item.replace(",", " ").split()]
     try:
@@ -83,12 +100,15 @@ def run(args: argparse.Namespace) -> int:
         host = Endpoint.parse(args.router).host
         cert_dir = args.certs_dir or args.out_dir.rstrip("/")
         out = Path(args.out_dir)
+        _refuse_another_robots(out, fleet.scope)
         passwords = None
         if not args.configs_only:
             names = list(dict.fromkeys([host, *DEFAULT_ROUTER_NAMES]))
-            for path in issue_certificates(out, roles, names):
+            for path in issue_certificates(out, roles, fleet.scope, names):
                 print(f"created {path}")
-            passwords = _passwords(out / "router" / "passwords.txt", roles)
+            users = {role: identity_name(role, fleet.scope) for role in roles}
+            known = _passwords(out / "router" / "passwords.txt", list(users.values()))
+            passwords = {role: known[user] for role, user in users.items()}
         written = write_configs(out, fleet, cert_dir, args.router, roles, passwords,
                                 observers_read_frames=not args.no_observer_frames)
     except (RuntimeError, ValueError) as exc:

@@ -49,6 +49,7 @@ from ddvs_service.protocol.security import (
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "make_dev_certs.sh"
 KEYS = Keys("ddvs", "ur5")
+SCOPE = KEYS.base  # the certificates' robot: common names `<role>@ddvs/ur5`
 SETTLE_S = 0.4  # declarations propagating through the router
 WAIT_S = 0.6
 
@@ -63,7 +64,7 @@ def _zenoh_config(config: dict[str, Any]) -> zenoh.Config:
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("certs")
-    subprocess.run(["bash", str(SCRIPT), str(directory)], check=True, capture_output=True)
+    subprocess.run(["bash", str(SCRIPT), str(directory), "--robot", KEYS.robot], check=True, capture_output=True)
     return directory
 
 
@@ -71,7 +72,7 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def rogue_certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Certificates with the right common names from another CA (an attacker's)."""
     directory = tmp_path_factory.mktemp("rogue")
-    subprocess.run(["bash", str(SCRIPT), str(directory)], check=True, capture_output=True)
+    subprocess.run(["bash", str(SCRIPT), str(directory), "--robot", KEYS.robot], check=True, capture_output=True)
     return directory
 
 
@@ -103,7 +104,8 @@ def network(router_for: Callable[[str], dict[str, Any]]) -> Iterator[Network]:
 
 
 def mtls_network(certs: Path, observers_read_frames: bool = True) -> Any:
-    return network(lambda ep: router_config(KEYS, certificate_identities(), [ep], TlsFiles.for_role(certs, "router"),
+    return network(lambda ep: router_config(KEYS, certificate_identities(SCOPE), [ep],
+                                            TlsFiles.for_role(certs, "router"),
                                             mtls=True, observers_read_frames=observers_read_frames))
 
 
@@ -175,7 +177,7 @@ def test_certificates_per_purpose_router_serves_roles_only_connect(tmp_path: Pat
         subprocess.run(["openssl", "verify", "-CAfile", str(tmp_path / name / "ca.pem"), str(pem)], check=True,
                        capture_output=True)
         text = _x509(pem)
-        assert f"CN = {name}" in text or f"CN={name}" in text
+        assert f"CN = {name}@ddvs/robot0" in text  # the script's default robot, that of configs/security
         if name == "router":
             assert "TLS Web Server Authentication" in text and "Client Authentication" not in text
             assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text
@@ -349,7 +351,8 @@ def test_no_escape_from_the_robots_exact_keys(certs: Path) -> None:
 def test_sessions_without_a_valid_certificate_cannot_connect(certs: Path, rogue_certs: Path, tmp_path: Path) -> None:
     self_signed, self_signed_key = tmp_path / "operator.pem", tmp_path / "operator.key"
     subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
-                    "-keyout", str(self_signed_key), "-out", str(self_signed), "-days", "1", "-subj", "/CN=operator",
+                    "-keyout", str(self_signed_key), "-out", str(self_signed), "-days", "1",
+                    "-subj", "/CN=operator@ddvs\\/ur5",
                     "-addext", "extendedKeyUsage=clientAuth"], check=True, capture_output=True)
     with mtls_network(certs) as net:
         port = net.endpoint.rsplit(":", 1)[1]
@@ -380,7 +383,7 @@ def test_a_router_with_a_role_certificate_is_refused_by_every_client(certs: Path
     on the same endpoint. Every role's client refuses it (no serverAuth, no router name), stays disconnected, and
     nothing it publishes reaches the impostor; the real router's certificate on the same spot is accepted (control)."""
     endpoint = f"tls/localhost:{free_port()}"
-    real = zenoh.open(_zenoh_config(router_config(KEYS, certificate_identities(), [endpoint],
+    real = zenoh.open(_zenoh_config(router_config(KEYS, certificate_identities(SCOPE), [endpoint],
                                                   TlsFiles.for_role(certs, "router"))))
     clients = {role: zenoh.open(_zenoh_config(client_config(role, [endpoint], TlsFiles.for_role(certs, role))))
                for role in ROLES}
@@ -414,23 +417,23 @@ def test_a_router_with_a_role_certificate_is_refused_by_every_client(certs: Path
 
 def test_password_identities_wrong_credentials_refused_and_roles_enforced(certs: Path, tmp_path: Path) -> None:
     passwords = tmp_path / "passwords.txt"
-    passwords.write_text("".join(f"{role}:pw-{role}\n" for role in ROLES), encoding="utf-8")
+    passwords.write_text("".join(f"{role}@{SCOPE}:pw-{role}\n" for role in ROLES), encoding="utf-8")
     tls_router = TlsFiles.for_role(certs, "router")
-    with network(lambda ep: router_config(KEYS, password_identities(), [ep], tls_router, mtls=False,
+    with network(lambda ep: router_config(KEYS, password_identities(SCOPE), [ep], tls_router, mtls=False,
                                           password_file=passwords)) as net:
         ca_only = TlsFiles(ca=certs / "operator" / "ca.pem")
 
         def client(role: str, user: str, password: str) -> zenoh.Session:
             return net.open(client_config(role, [net.endpoint], ca_only, mtls=False, credentials=(user, password)))
 
-        for user, password in (("bridge", "wrong"), ("mallory", "pw-bridge")):
+        for user, password in ((f"bridge@{SCOPE}", "wrong"), ("mallory", "pw-bridge"), ("bridge", "pw-bridge")):
             with pytest.raises(zenoh.ZError, match="Unable to connect"):
                 client("bridge", user, password)
         with pytest.raises(zenoh.ZError, match="Unable to connect"):
             net.open(client_config("bridge", [net.endpoint], ca_only, mtls=False))  # anonymous
-        plant = client("plant", "plant", "pw-plant")
-        bridge = client("bridge", "bridge", "pw-bridge")
-        observer = client("observer", "observer", "pw-observer")
+        plant = client("plant", f"plant@{SCOPE}", "pw-plant")
+        bridge = client("bridge", f"bridge@{SCOPE}", "pw-bridge")
+        observer = client("observer", f"observer@{SCOPE}", "pw-observer")
         commands = Inbox(plant, KEYS.arm_joint_velocity)
         time.sleep(SETTLE_S)
         assert _put_until(bridge, KEYS.arm_joint_velocity, b"authorised", commands)
@@ -443,7 +446,7 @@ def test_password_identities_wrong_credentials_refused_and_roles_enforced(certs:
 
 
 def test_rules_follow_the_key_table_and_grant_each_write_to_one_role() -> None:
-    acl = router_config(KEYS, certificate_identities(), ["tls/localhost:7447"])["access_control"]
+    acl = router_config(KEYS, certificate_identities(SCOPE), ["tls/localhost:7447"])["access_control"]
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
     process_key = process_command_key(KEYS.prefix, KEYS.robot)
     all_keys = {KEYS.key(name) for name in TOPICS} | {audit_key(KEYS.base), process_key}
@@ -482,8 +485,8 @@ def test_a_fleet_gets_each_robots_grants_and_its_process_key_and_nothing_else() 
     a, b, c = (Keys("ddvs", name) for name in ("fleet_a", "fleet_b", "fleet_c"))
     fleet = Fleet((a, b))
     assert fleet.process == "fleet_a" and fleet.command_key == "ddvs/serve/fleet_a/command"  # as `ddvs serve` names it
-    acl = router_config(fleet, certificate_identities(), ["tls/localhost:7447"])["access_control"]
-    alone = {k.robot: router_config(k, certificate_identities(), ["tls/localhost:7447"])["access_control"]
+    acl = router_config(fleet, certificate_identities(SCOPE), ["tls/localhost:7447"])["access_control"]
+    alone = {k.robot: router_config(k, certificate_identities(SCOPE), ["tls/localhost:7447"])["access_control"]
              for k in (a, b)}
     ids = [rule["id"] for rule in acl["rules"]]
     assert len(ids) == len(set(ids)) and set(ids) == {rule["id"] for rule in alone["fleet_a"]["rules"]}
@@ -502,8 +505,9 @@ def test_a_fleet_gets_each_robots_grants_and_its_process_key_and_nothing_else() 
     assert ("ingress", "query", fleet.command_key) in _grants(acl, "operator")
     assert robots_granted(acl) == {a.base, b.base}
     named = Fleet((a, b), "cell1")
-    assert {key for _, _, key in _grants(router_config(named, certificate_identities(), ["tls/localhost:7447"])[
-        "access_control"], "operator") if key.startswith("ddvs/serve/")} == {"ddvs/serve/cell1/command"}
+    named_acl = router_config(named, certificate_identities(SCOPE), ["tls/localhost:7447"])["access_control"]
+    named_keys = {key for _, _, key in _grants(named_acl, "operator") if key.startswith("ddvs/serve/")}
+    assert named_keys == {"ddvs/serve/cell1/command"}
     with pytest.raises(ValueError, match="given twice"):
         Fleet((a, b, a))
     with pytest.raises(ValueError, match="at least one robot"):

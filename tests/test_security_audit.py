@@ -26,6 +26,7 @@ from ddvs_service.protocol.pki import issue_certificates
 from ddvs_service.protocol.security import ROLES, TlsFiles, client_config
 
 KEYS = Keys("ddvs", "arm7")
+OBSERVER, MALLORY = f"observer@{KEYS.base}", f"mallory@{KEYS.base}"  # identities name their robot
 REPORT_WAIT_S = 3.0  # the router publishes its audit every second
 
 
@@ -37,7 +38,7 @@ def secured(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     endpoint = f"tls/localhost:{free_port()}"
     subprocess.run([sys.executable, "-m", "ddvs.cli", "security", "init", "--robot", KEYS.robot, "--router", endpoint,
                     str(out)], check=True, capture_output=True, cwd=out.parent)
-    issue_certificates(out, ["mallory"])
+    issue_certificates(out, ["mallory"], KEYS.base)
     return out, endpoint
 
 
@@ -112,23 +113,23 @@ def test_intrusions_are_logged_counted_and_shown_while_legitimate_traffic_is_not
             with pytest.raises(zenoh.ZError, match="Unable to connect"):
                 zenoh.open(zenoh.Config.from_json5(json.dumps(client_config(
                     "operator", [endpoint], TlsFiles.for_role(out.name, "router")))))
-            report = newest_report(reports, lambda r: r["denied"].get("observer") == 7 and r["no_role"]
+            report = newest_report(reports, lambda r: r["denied"].get(OBSERVER) == 7 and r["no_role"]
                                    and r["tls_refused"])
             mallory.close()
-            assert report["denied"] == {"observer": 7}, report
-            assert report["no_role"] == {"mallory": 1} and report["tls_refused"] >= 1, report
+            assert report["denied"] == {OBSERVER: 7}, report
+            assert report["no_role"] == {MALLORY: 1} and report["tls_refused"] >= 1, report
             assert b"forged" not in commands.payloads
             lines = audit_lines(log)
             denied = [e for e in lines if e["msg"] == "access denied"]
             assert [e["count"] for e in denied] == list(range(1, 8))
             assert {(e["identity"], e["action"], e["key"]) for e in denied} == {
-                ("observer", "Put", KEYS.arm_joint_velocity)}
-            assert [e["identity"] for e in lines if e["msg"].startswith("session without a role")] == ["mallory"]
+                (OBSERVER, "Put", KEYS.arm_joint_velocity)}
+            assert [e["identity"] for e in lines if e["msg"].startswith("session without a role")] == [MALLORY]
             assert any(e["msg"] == "TLS handshake refused" for e in lines)
             time.sleep(1.2)
             shown = monitor.snapshot()["audit"]
-            assert shown["denied"] == {"observer": 7} and shown["no_role"] == {"mallory": 1}
-            assert "denied observer 7" in render(monitor.snapshot(), "t")
+            assert shown["denied"] == {OBSERVER: 7} and shown["no_role"] == {MALLORY: 1}
+            assert f"denied {OBSERVER} 7" in render(monitor.snapshot(), "t")
             monitor.close()
             queryable.undeclare()
             token.undeclare()
@@ -152,12 +153,12 @@ def test_audit_lines_are_rate_bounded_but_every_denial_is_counted(
             started = time.monotonic()
             for _ in range(300):
                 observer.put(KEYS.servo_twist, b"forged")
-            report = newest_report(reports, lambda r: r["denied"].get("observer") == 300)
+            report = newest_report(reports, lambda r: r["denied"].get(OBSERVER) == 300)
             elapsed = time.monotonic() - started
             time.sleep(1.0)  # the router's next flush logs what is still suppressed
         finally:
             observer.close()
-    assert report["denied"] == {"observer": 300}, report
+    assert report["denied"] == {OBSERVER: 300}, report
     lines = audit_lines(log)
     individual = [e for e in lines if e["msg"] == "access denied"]
     summarised = sum(e["suppressed"] for e in lines if e["msg"] == "access denials not logged individually")
@@ -199,8 +200,8 @@ def test_security_init_password_variant_admits_each_role_and_refuses_wrong_passw
         assert b"forged" not in commands.payloads and reports.payloads == []
         lines = audit_lines(log)
         denied = [e for e in lines if e["msg"] == "access denied"]
-        assert sorted((e["identity"], e["key"]) for e in denied) == [("observer", KEYS.arm_joint_velocity),
-                                                                      ("plant", audit_key(KEYS.base))]
+        assert sorted((e["identity"], e["key"]) for e in denied) == [(OBSERVER, KEYS.arm_joint_velocity),
+                                                                      (f"plant@{KEYS.base}", audit_key(KEYS.base))]
         assert [e["detail"] for e in lines if e["msg"] == "authentication refused"] == ["Invalid password"]
     finally:
         for session in sessions:

@@ -157,11 +157,11 @@ def test_arm_servo_converges_secured_by_security_init_while_an_observer_interfer
         assert frames_to_observer.payloads == []
         time.sleep(1.5)  # the router's next audit summary
         audit = json.loads(audits.payloads[-1])
-        assert audit["denied"] == {"observer": attempts}, audit  # and nothing from the legitimate nodes
+        assert audit["denied"] == {f"observer@{KEYS.base}": attempts}, audit  # and nothing from the legitimate nodes
         assert audit["no_role"] == {} and audit["tls_refused"] == audit["auth_refused"] == 0
         router_log = [json.loads(line) for line in (logs / "router.log").read_text().splitlines()
                       if line.startswith("{")]
         denied = {(e["action"], e["key"]) for e in router_log if e.get("msg") == "access denied"}
-        assert {e["identity"] for e in router_log if e.get("msg") == "access denied"} == {"observer"}
+        assert {e["identity"] for e in router_log if e.get("msg") == "access denied"} == {f"observer@{KEYS.base}"}
         assert denied == {("Declare Subscriber", KEYS.camera_image), ("Query", KEYS.servo_command),
                           ("Put", KEYS.arm_joint_velocity), ("Put", KEYS.servo_twist)}

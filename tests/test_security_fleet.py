@@ -116,7 +116,8 @@ def test_a_secured_fleet_process_serves_its_robots_and_answers_only_the_operator
         code, stderr = service.stop()
         assert code == 0, stderr[-4000:]
     denied = [e for e in audit_lines(log) if e["msg"] == "access denied"]
-    assert {(e["identity"], e["action"], e["key"]) for e in denied} == {("observer", "Query", PROCESS_KEY)}, denied
+    observer = f"observer@ddvs/{SERVED[0]}"  # the fleet's identities name its process
+    assert {(e["identity"], e["action"], e["key"]) for e in denied} == {(observer, "Query", PROCESS_KEY)}, denied
 
 
 def test_ddvs_serve_refuses_a_process_name_the_rules_do_not_allow(tmp_path: Path) -> None:

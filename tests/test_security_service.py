@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import free_port
-from test_security import KEYS, SCRIPT, Inbox, _zenoh_config
+from test_security import KEYS, SCOPE, SCRIPT, Inbox, _zenoh_config
 
 from ddvs_service.protocol import (
     Command,
@@ -62,7 +62,7 @@ def command(session: zenoh.Session, timeout: float = 2.0, **kwargs: object) -> R
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("certs")
-    subprocess.run(["bash", str(SCRIPT), str(directory)], check=True, capture_output=True)
+    subprocess.run(["bash", str(SCRIPT), str(directory), "--robot", KEYS.robot], check=True, capture_output=True)
     return directory
 
 
@@ -70,7 +70,8 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_ddvs_serve_over_mtls_obeys_the_operator_only(certs: Path, tmp_path: Path) -> None:
     endpoint = f"tls/localhost:{free_port()}"
     router = zenoh.open(_zenoh_config(router_config(
-        KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, "router"), observers_read_frames=False)))
+        KEYS, certificate_identities(SCOPE), [endpoint], TlsFiles.for_role(certs, "router"),
+        observers_read_frames=False)))
     sessions = [router]
     zenoh_file = tmp_path / "service.json5"
     zenoh_file.write_text(render_json5(client_config("service", [endpoint], TlsFiles.for_role(certs, "service")),
@@ -137,7 +138,7 @@ def test_only_the_bridge_moves_the_real_arm_sim_over_mtls(certs: Path, tmp_path:
     operator and the observer leave the arm still; the same commands from the bridge move it."""
     endpoint = f"tls/localhost:{free_port()}"
     router = zenoh.open(_zenoh_config(router_config(
-        KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, "router"))))
+        KEYS, certificate_identities(SCOPE), [endpoint], TlsFiles.for_role(certs, "router"))))
     sessions = [router]
     plant_file = tmp_path / "plant.json5"
     plant_file.write_text(render_json5(client_config("plant", [endpoint], TlsFiles.for_role(certs, "plant")),
@@ -200,7 +201,7 @@ def test_ddvs_serve_refuses_a_router_that_holds_a_role_certificate(certs: Path, 
     endpoint = f"tls/localhost:{free_port()}"
 
     def router_as(holder: str) -> zenoh.Session:
-        config = router_config(KEYS, certificate_identities(), [endpoint], TlsFiles.for_role(certs, holder))
+        config = router_config(KEYS, certificate_identities(SCOPE), [endpoint], TlsFiles.for_role(certs, holder))
         if holder != "router":
             del config["access_control"]  # the impostor lets everything through
         return zenoh.open(_zenoh_config(config))

@@ -20,9 +20,11 @@ query; no other robot's or process's key is allowed.
 
 The rules are generated from `Keys`/`TOPICS` (`access_control`) so that they follow the key table; each role is
 mapped to a Zenoh identity (`Identity`: TLS certificate common names and/or usernames of user/password
-authentication). The rules are enforced by the router that every client connects to (`router_config`); each role's
-client configuration comes from `client_config`. Flows are seen from the router: `ingress` = sent by that client,
-`egress` = delivered to it, so a publication needs the publisher's `put` (ingress) and the subscriber's `put` (egress).
+authentication), `<role>@<prefix>/<robot>` (`identity_name`; a fleet's: `<prefix>/<process>`), so that another
+robot's identities match no role here (docs/security.md, "One CA per robot"). The rules are enforced by the router
+that every client connects to (`router_config`); each role's client configuration comes from `client_config`. Flows
+are seen from the router: `ingress` = sent by that client, `egress` = delivered to it, so a publication needs the
+publisher's `put` (ingress) and the subscriber's `put` (egress).
 
 `warn_if_insecure` logs a warning for every endpoint a session would listen on beyond loopback without TLS;
 `check_robot_covered` tells whether the router configurations beside a node's own cover its robot, and
@@ -36,6 +38,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +53,7 @@ ROLES = ("service", "plant", "bridge", "operator", "observer")
 FRAME_TOPICS = ("camera_image", "servo_reference", "servo_residual")
 AUDIT_READERS = ("operator", "observer")  # may read the router's audit summary (`audit.audit_key`)
 SECURE_PROTOCOLS = ("tls", "quic")
+_SCOPE = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
 
 
@@ -91,6 +95,20 @@ ROLE_GRANTS: dict[str, Grants] = {
 }
 
 
+def identity_name(role: str, scope: str) -> str:
+    """The common name of `role`'s certificate in `scope` (the username of the user/password variant too):
+    `<role>@<scope>`, e.g. `operator@ddvs/cell7`; `router` gives the router's."""
+    return f"{role}@{scope}"
+
+
+def check_scope(scope: str) -> str:
+    """`scope` (`<prefix>/<robot>`, a fleet's `<prefix>/<process>`) when it can name certificates; else ValueError."""
+    if not _SCOPE.match(scope):
+        raise ValueError(f"certificate scope {scope!r}: expected '<prefix>/<robot>' of letters, digits, '_', '-', '.' "
+                         "and '/' between chunks (e.g. 'ddvs/cell7')")
+    return scope
+
+
 @dataclass(frozen=True)
 class Identity:
     """How the router recognises a role's sessions: certificate common names (mutual TLS) and/or usernames
@@ -106,14 +124,15 @@ class Identity:
                              "identity would match every session)")
 
 
-def certificate_identities(prefix: str = "") -> dict[str, Identity]:
-    """Each role recognised by its certificate's common name `<prefix><role>` (what `make_dev_certs.sh` issues)."""
-    return {role: Identity(cert_common_names=(f"{prefix}{role}",)) for role in ROLES}
+def certificate_identities(scope: str) -> dict[str, Identity]:
+    """Each role recognised by its certificate's common name `<role>@<scope>` (`identity_name`, what
+    `pki.issue_certificates` issues for `scope`, e.g. `ddvs/cell7`): another robot's certificates match no role."""
+    return {role: Identity(cert_common_names=(identity_name(role, scope),)) for role in ROLES}
 
 
-def password_identities(prefix: str = "") -> dict[str, Identity]:
-    """Each role recognised by its user/password username `<prefix><role>`."""
-    return {role: Identity(usernames=(f"{prefix}{role}",)) for role in ROLES}
+def password_identities(scope: str) -> dict[str, Identity]:
+    """Each role recognised by its user/password username `<role>@<scope>`."""
+    return {role: Identity(usernames=(identity_name(role, scope),)) for role in ROLES}
 
 
 @dataclass(frozen=True)
@@ -145,6 +164,12 @@ class Fleet:
     @property
     def command_key(self) -> str:
         return process_command_key(self.robots[0].prefix, self.process)
+
+    @property
+    def scope(self) -> str:
+        """`<prefix>/<process>` (one robot: `<prefix>/<robot>`): what every certificate, common name and username of
+        this network belongs to (`pki`). ValueError when it cannot name certificates (`check_scope`)."""
+        return check_scope(f"{self.robots[0].prefix}/{self.process}")
 
     def describe(self) -> str:
         """`ddvs/robot0` for one robot served by the process named after it; otherwise every robot and the
@@ -402,9 +427,10 @@ def write_configs(
     """Write every Zenoh configuration of the secured network of one robot or a `Fleet` into `out_dir`:
     `router-mtls.json5` (mutual TLS, identities by certificate), `router-password.json5` (server TLS + user/password
     from `<cert_dir>/router/passwords.txt`), and per role `<role>-mtls.json5` and `<role>-password.json5` client
-    configurations. Certificate paths are `<cert_dir>/<role>/...` as written (`pki` layout; Zenoh resolves relative
-    paths against the node's working directory). `passwords` (role → password) go into the client files, which are
-    then readable by their owner only; without them the files carry `CHANGE-ME-<role>`. Returns the paths written."""
+    configurations; every identity is `<role>@<scope>` (`Fleet.scope`). Certificate paths are
+    `<cert_dir>/<role>/...` as written (`pki` layout; Zenoh resolves relative paths against the node's working
+    directory). `passwords` (role → password) go into the client files, which are then readable by their owner only;
+    without them the files carry `CHANGE-ME-<role>`. Returns the paths written."""
     unknown = [r for r in roles if r not in ROLES]
     if unknown or not roles:
         raise ValueError(f"roles {list(roles)}: expected one or more of {', '.join(ROLES)}")
@@ -412,8 +438,9 @@ def write_configs(
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, tuple[dict[str, Any], str]] = {}
     listen, tls_router = [router], TlsFiles.for_role(cert_dir, "router")
-    by_cert = {r: i for r, i in certificate_identities().items() if r in roles}
-    by_user = {r: i for r, i in password_identities().items() if r in roles}
+    scope = Fleet.of(keys).scope
+    by_cert = {r: i for r, i in certificate_identities(scope).items() if r in roles}
+    by_user = {r: i for r, i in password_identities(scope).items() if r in roles}
     files["router-mtls.json5"] = (
         router_config(keys, by_cert, listen, tls_router, mtls=True, observers_read_frames=observers_read_frames),
         "Hub router: mutual TLS, each role recognised by its certificate's common name, deny-by-default access "
@@ -428,13 +455,15 @@ def write_configs(
     for role in roles:
         files[f"{role}-mtls.json5"] = (
             client_config(role, [router], TlsFiles.for_role(cert_dir, role), mtls=True),
-            f"The {role}'s node: client of the hub router, mutual TLS with the '{role}' certificate.",
+            f"The {role}'s node: client of the hub router, mutual TLS with the '{identity_name(role, scope)}' "
+            "certificate.",
         )
         password = passwords[role] if passwords else PASSWORD_PLACEHOLDER.format(role=role)
         files[f"{role}-password.json5"] = (
             client_config(role, [router], TlsFiles(ca=Path(cert_dir) / role / "ca.pem"), mtls=False,
-                          credentials=(role, password)),
-            f"The {role}'s node: client of the hub router, server-side TLS and user/password '{role}'.",
+                          credentials=(identity_name(role, scope), password)),
+            f"The {role}'s node: client of the hub router, server-side TLS and user/password "
+            f"'{identity_name(role, scope)}'.",
         )
     written = []
     for name, (config, comment) in files.items():
@@ -477,6 +506,13 @@ def sibling_router_grants(zenoh_config: str | Path | None) -> dict[Path, set[str
     """The robots granted by each router configuration beside a node's Zenoh configuration file
     (`sibling_access_controls`)."""
     return {path: robots_granted(section) for path, section in sibling_access_controls(zenoh_config).items()}
+
+
+def configured_scopes(out_dir: str | Path) -> set[str]:
+    """The scopes (`Fleet.scope`) whose identities (`<role>@<scope>`) the router configurations in `out_dir` name."""
+    return {name.split("@", 1)[1] for section in sibling_access_controls(Path(out_dir) / "-").values()
+            for subject in section.get("subjects", [])
+            for name in (*(subject.get("cert_common_names") or []), *(subject.get("usernames") or [])) if "@" in name}
 
 
 def check_robot_covered(keys: Keys, zenoh_config: str | Path | None, logger: logging.Logger | None = None) -> bool:
