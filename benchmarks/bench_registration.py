@@ -41,6 +41,7 @@ from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import PlanarRegistration  # noqa: E402
 from ddvs_service.registration.tracker import Tracker  # noqa: E402
 from evaluation.numpy_iteration import numpy_step  # noqa: E402
+from evaluation.pairs import ONE_GAIN_HUBER  # noqa: E402
 from sim.textures import texture_path  # noqa: E402
 
 IMAGE = texture_path("boat")
@@ -90,7 +91,7 @@ def iteration_times(ref: np.ndarray, w: int, h: int, reps: int) -> dict[str, flo
     roi = centred_roi(ref.shape, w, h)
     x, y = roi[0], roi[1]
     cur = warp(ref, similarity_about((x + w / 2, y + h / 2), (1.0, -0.7), 0.3, 1.003))
-    config = RegistrationConfig(levels=1, max_iterations=ITERATIONS, step_tolerance_px=1e-12)
+    config = RegistrationConfig(levels=1, max_iterations=ITERATIONS, step_tolerance_px=1e-12, **ONE_GAIN_HUBER)
     problem = PlanarRegistration.prepare(ref, roi=roi, config=config)
     params = _kernel_params(problem)
     template = np.ascontiguousarray(ref[y : y + h, x : x + w])
@@ -143,7 +144,7 @@ def tracking(ref: np.ndarray, frames: int) -> dict[str, float]:
     truths = [similarity_about(centre, (1.6 * k, 1.2 * k), 0.1 * k, 1.0 + 0.001 * k) for k in range(frames + 1)]
     images = [warp(ref, H) for H in truths]
     corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1, 1, 1, 1]], dtype=float)
-    tracker = Tracker.prepare(ref, roi)
+    tracker = Tracker.prepare(ref, roi, RegistrationConfig(**ONE_GAIN_HUBER))
     tracker.track(images[0])  # compile
     times, errors, iterations = [], [], []
     for H_true, image in zip(truths[1:], images[1:], strict=True):
@@ -179,7 +180,7 @@ def _first_registration_child() -> None:
     x, y, w, h = roi
     cur = warp(ref, similarity_about((x + w / 2, y + h / 2), (5.0, -3.0), 2.0, 1.02))
     t_register = time.perf_counter()
-    result = register(ref, cur, roi=roi)
+    result = register(ref, cur, roi=roi, config=RegistrationConfig(**ONE_GAIN_HUBER))
     t_end = time.perf_counter()
     print(json.dumps({"first_s": t_end - t, "register_s": t_end - t_register, "converged": result.converged}))
 

@@ -35,7 +35,7 @@ from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.defocus import register_defocus  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 from evaluation.datasets import require_datasets  # noqa: E402
-from evaluation.pairs import CAMERA_GAMMA, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
+from evaluation.pairs import CAMERA_GAMMA, ONE_GAIN_HUBER, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 
 SEQUENCE = "bikes"
 FRAMES = range(1, 7)
@@ -97,9 +97,10 @@ def run() -> str:
         for w, h in ROI_SIZES:
             ref = images[1]
             roi = centred_roi(ref.shape, w, h)
-            result = register(ref, images[k], roi=roi)
+            result = register(ref, images[k], roi=roi, config=RegistrationConfig(**ONE_GAIN_HUBER))
             ours = result.H / result.H[2, 2]
-            physical = register_defocus(ref, images[k], roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA)).result
+            physical = register_defocus(ref, images[k], roi=roi, config=RegistrationConfig(
+                gamma=CAMERA_GAMMA, **ONE_GAIN_HUBER)).result
             try:
                 H_ecc: np.ndarray | None = ecc(ref, images[k], roi)
             except cv2.error:

@@ -36,14 +36,15 @@ from benchmarks.bikes_ground_truth import SiftFit  # noqa: E402
 from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 from evaluation.datasets import require_datasets  # noqa: E402
-from evaluation.pairs import PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
+from evaluation.pairs import ONE_GAIN_HUBER, PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 from kernels.image_formation import defocus_kernel  # noqa: E402
 
 SIZES = {  # px; > 0 blurs the reference, < 0 the current image
     "gaussian": (-2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0),
     "disk": (-2.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
 }
-CONFIGS = {"default": RegistrationConfig(), "gain 2×2": RegistrationConfig(gain_grid=(2, 2))}
+CONFIGS = {"default": RegistrationConfig(**ONE_GAIN_HUBER),
+           "gain 2×2": RegistrationConfig(**{**ONE_GAIN_HUBER, "gain_grid": (2, 2)})}
 SYNTHETIC_BLURS = (0.0, 2.0, 3.0, 4.0)  # defocus of the synthetic current image, px
 Roi = tuple[int, int, int, int]
 

@@ -30,8 +30,11 @@ sys.path.insert(0, str(ROOT))
 
 from ddvs_service.registration import planar  # noqa: E402
 from ddvs_service.registration.coarse_search import coarse_alignment  # noqa: E402
+from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from evaluation.datasets import require_datasets  # noqa: E402
-from evaluation.pairs import corner_error, load  # noqa: E402
+from evaluation.pairs import ONE_GAIN_HUBER, corner_error, load  # noqa: E402
+
+COLD = RegistrationConfig(**ONE_GAIN_HUBER)  # the settings the results were measured with
 
 TEXTURES = ("boat", "graf", "wall", "bark", "trees", "ubc")
 TRIALS = 40
@@ -75,7 +78,7 @@ def basin() -> str:
             current = cv2.warpPerspective(texture, H, (texture.shape[1], texture.shape[0]), flags=cv2.INTER_LINEAR)
             for variant, search in VARIANTS.items():
                 planar.coarse_alignment = search
-                result = planar.register(texture, current, roi=roi)
+                result = planar.register(texture, current, roi=roi, config=COLD)
                 if result.converged:
                     counts[variant][corner_error(H, result.H, roi) >= OK_PX] += 1
         planar.coarse_alignment = coarse_alignment
@@ -99,7 +102,7 @@ def timing() -> str:
             for variant, search in VARIANTS.items():
                 planar.coarse_alignment = search
                 start = time.perf_counter()
-                planar.register(ref, cur, roi=roi)
+                planar.register(ref, cur, roi=roi, config=COLD)
                 if repeat:
                     times[variant].append(1e3 * (time.perf_counter() - start))
         planar.coarse_alignment = coarse_alignment

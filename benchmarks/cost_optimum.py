@@ -30,9 +30,12 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_registration import table_main  # noqa: E402
 from benchmarks.real_pairs import ecc  # noqa: E402
+from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 from evaluation.datasets import require_datasets  # noqa: E402
-from evaluation.pairs import PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
+from evaluation.pairs import ONE_GAIN_HUBER, PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
+
+COLD = RegistrationConfig(**ONE_GAIN_HUBER)  # the settings the results were measured with
 
 SHIFT_PX = 16
 Roi = tuple[int, int, int, int]
@@ -48,13 +51,13 @@ def row(seq: str, k: int, size: tuple[int, int]) -> str:
     ref, cur, truth = load(seq, 1), load(seq, k), ground_truth(seq, k)
     w, h = size
     roi = centred_roi(ref.shape, w, h)
-    cold = register(ref, cur, roi=roi)
-    warm = register(ref, cur, roi=roi, G0=truth)
+    cold = register(ref, cur, roi=roi, config=COLD)
+    warm = register(ref, cur, roi=roi, G0=truth, config=COLD)
     try:
         ecc_text = f"{corner_error(truth, ecc(ref, cur, roi, truth), roi):.2f}"
     except cv2.error:
         ecc_text = "failed"
-    spread = [corner_error(truth, register(ref, cur, roi=moved).H, roi) for moved in shifted(roi)]
+    spread = [corner_error(truth, register(ref, cur, roi=moved, config=COLD).H, roi) for moved in shifted(roi)]
     cells = [
         f"{seq} 1→{k}", f"{w}×{h}",
         f"{corner_error(truth, cold.H, roi):.2f}{'' if cold.converged else '*'}",

@@ -25,7 +25,7 @@ from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 from evaluation.datasets import require_datasets  # noqa: E402
 from evaluation.defocus import defocused  # noqa: E402
-from evaluation.pairs import CAMERA_GAMMA, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
+from evaluation.pairs import CAMERA_GAMMA, ONE_GAIN_HUBER, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
 
 CASES = ((4, 3.5), (5, 4.5), (6, 5.5))  # bikes image N, defocus radius (px)
 
@@ -41,8 +41,9 @@ def run() -> str:
             for w, h in ROI_SIZES:
                 roi = centred_roi(sharp.shape, w, h)
                 cells = [f"bikes 1→{k}, {radius:g} px", name, f"{w}×{h}"]
-                for config in (RegistrationConfig(), RegistrationConfig(defocus_px=radius),
-                               RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=radius)):
+                for config in (RegistrationConfig(**ONE_GAIN_HUBER),
+                               RegistrationConfig(defocus_px=radius, **ONE_GAIN_HUBER),
+                               RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=radius, **ONE_GAIN_HUBER)):
                     result = register(sharp, current, roi=roi, config=config)
                     cells.append(f"{corner_error(H, result.H, roi):.2f}{'' if result.converged else '*'}")
                 lines.append("| " + " | ".join(cells) + " |")

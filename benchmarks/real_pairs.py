@@ -33,7 +33,16 @@ from ddvs_service.registration.config import RegistrationConfig  # noqa: E402
 from ddvs_service.registration.defocus import register_defocus  # noqa: E402
 from ddvs_service.registration.planar import register  # noqa: E402
 from evaluation.datasets import require_datasets  # noqa: E402
-from evaluation.pairs import CAMERA_GAMMA, PAIRS, ROI_SIZES, centred_roi, corner_error, ground_truth, load  # noqa: E402
+from evaluation.pairs import (  # noqa: E402
+    CAMERA_GAMMA,
+    ONE_GAIN_HUBER,
+    PAIRS,
+    ROI_SIZES,
+    centred_roi,
+    corner_error,
+    ground_truth,
+    load,
+)
 
 FAILED_PX = 5.0
 
@@ -69,11 +78,12 @@ def run() -> str:
         cells = [f"{seq} 1→{k}"]
         for w, h in ROI_SIZES:
             roi = centred_roi(ref.shape, w, h)
-            result = register(ref, cur, roi=roi)
+            result = register(ref, cur, roi=roi, config=RegistrationConfig(**ONE_GAIN_HUBER))
             error = corner_error(H_true, result.H, roi)
             worst = max(worst, error)
             cells.append(cell(error, result.converged, "" if result.converged else "not converged"))
-            fit = register_defocus(ref, cur, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA))
+            fit = register_defocus(ref, cur, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA,
+                                                                                          **ONE_GAIN_HUBER))
             converged = fit.result.converged
             text = cell(corner_error(H_true, fit.result.H, roi), converged, "" if converged else "not converged")
             cells.append(f"{text} (r {fit.defocus_px:.1f})")

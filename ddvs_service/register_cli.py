@@ -34,26 +34,35 @@ if TYPE_CHECKING:  # the modules themselves are imported by `run`, so that `ddvs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ddvs_service.registration.config import RegistrationConfig  # the schema's defaults (pydantic, no Taichi)
+    from ddvs_service.registration.general_config import GeneralConfig
+
+    engine, general = RegistrationConfig(), GeneralConfig()
     parser.add_argument("reference", help="reference image file (colour is converted to grey)")
     parser.add_argument("current", help="current image file, same size as the reference")
     parser.add_argument("--roi", nargs=4, type=int, metavar=("X", "Y", "W", "H"), help="ROI in reference pixels")
     parser.add_argument("--init", metavar="H_FILE", help="initial homography: 3×3 text file (numpy.loadtxt), "
                         "or 'global' for the global initialiser")
-    parser.add_argument("--levels", type=int, help="pyramid levels at most (default: as many as the ROI size allows)")
-    parser.add_argument("--gain-grid", default="1x1", metavar="RxC", help="gain grid rows x cols (default 1x1)")
-    parser.add_argument("--robust", choices=("huber", "tukey", "none"), default="huber", help="M-estimator")
-    parser.add_argument("--gamma", type=float, default=1.0,
-                        help="camera response exponent: register irradiance 255 (I/255)^GAMMA (default 1: as is)")
+    parser.add_argument("--levels", type=int, default=engine.levels,
+                        help="pyramid levels at most (default: %(default)s, as many as the ROI size allows)")
+    parser.add_argument("--gain-grid", default="{}x{}".format(*engine.gain_grid), metavar="RxC",
+                        help="gain grid rows x cols (default %(default)s)")
+    parser.add_argument("--robust", choices=("huber", "tukey", "none"), default=engine.robust,
+                        help="M-estimator (default %(default)s)")
+    parser.add_argument("--gamma", type=float, default=engine.gamma,
+                        help="camera response exponent: register irradiance 255 (I/255)^GAMMA (default %(default)s)")
     parser.add_argument("--defocus", default="0", metavar="R|search",
                         help="relative defocus of the current image: disk radius in pixels applied to the "
                              "reference, or 'search' to estimate it (planar model; default 0)")
     parser.add_argument("--model", choices=("planar", "general"), default="planar",
                         help="planar homography (default) or the general model with epipole and parallax field")
-    parser.add_argument("--rho-degree", type=int, choices=(2, 3), default=2,
-                        help="general model: degree of the parallax basis (2 biquadratic, 3 bicubic; default 2)")
-    parser.add_argument("--interpolation", choices=("bspline", "keys"), default="bspline",
+    parser.add_argument("--rho-degree", type=int, choices=(2, 3), default=general.rho_degree,
+                        help="general model: degree of the parallax basis (2 biquadratic, 3 bicubic; default "
+                             "%(default)s)")
+    parser.add_argument("--interpolation", choices=("bspline", "keys"), default=general.interpolation,
                         help="general model: sampling of the current image at full resolution, the interpolating "
-                             "cubic B-spline (default) or Keys' cubic convolution (GeneralConfig.interpolation)")
+                             "cubic B-spline or Keys' cubic convolution (GeneralConfig.interpolation; default "
+                             "%(default)s)")
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -106,10 +115,9 @@ def run(args: argparse.Namespace) -> int:
             G0 = found.G
         else:
             G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
-        levels = {} if args.levels is None else {"levels": args.levels}
         defocus = _defocus(args.defocus)
-        config = RegistrationConfig(**levels, gain_grid=_grid(args.gain_grid), robust=args.robust, gamma=args.gamma,
-                                    defocus_px=0.0 if defocus is None else defocus)
+        config = RegistrationConfig(levels=args.levels, gain_grid=_grid(args.gain_grid), robust=args.robust,
+                                    gamma=args.gamma, defocus_px=0.0 if defocus is None else defocus)
         roi = None if args.roi is None else tuple(args.roi)
         if defocus is None and args.model == "general":
             raise ValueError("--defocus search estimates the defocus with the planar model; give a radius with "

@@ -87,7 +87,7 @@ def measure(render: Callable[[np.ndarray], np.ndarray], config: GeneralConfig) -
     |Δε̄| / tolerance, converged, the ρ* shape error (`rho_shape_error`)."""
     saddle = paper_saddle()
     trajectory = run_synthetic("ddvs")
-    law = ControlLaw(ControlConfig("ddvs", gains=0.4, stop_threshold=1e-3), INTR)
+    law = ControlLaw(ControlConfig(law="ddvs", gains=0.4, stop_threshold=1e-3), INTR)
     x, y, w, h = ROI
     u, v = np.meshgrid(np.arange(x, x + w, dtype=float), np.arange(y, y + h, dtype=float))
     p = np.c_[u.ravel(), v.ravel()]

@@ -26,7 +26,6 @@ convergence; `run_arm` is `open_arm_run` + `ArmRun.wait_for_convergence`.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -37,7 +36,10 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
+
+if TYPE_CHECKING:
+    from ddvs_service.service.config import ServiceConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "configs" / "arm" / "ur5_poster.json"
@@ -153,19 +155,25 @@ def child(name: str, args: list[str], log_dir: Path, wrapper: tuple[str, ...] = 
                     proc.wait()
 
 
-def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> dict[str, Any]:
-    """The `ddvs serve` configuration of this run (written to `<out>/serve.json`)."""
-    return {
-        "prefix": settings.prefix,
-        "robot": settings.robot,
-        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{listen}"], "connect": [f"tcp/127.0.0.1:{sim_port}"]},
-        "state_dir": str(settings.out_dir / "state"),
-        # levels 3: the pyramid of the measured arm runs (the service's default is the engine's, 8 at most)
-        "registration": {"template_size": list(settings.template), "levels": 3, "global_init": True,
-                         **({} if settings.gain_grid is None else {"gain_grid": list(settings.gain_grid)})},
-        "control": {"law": settings.law, "gains": settings.gain, "stop_threshold": settings.stop_threshold},
-        "ros": {"domain_id": settings.ros_domain_id},
-    }
+def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> ServiceConfig:
+    """The `ddvs serve` configuration of this run (written to `<out>/serve.json`), built and checked by the schema."""
+    from ddvs_service.protocol.ros_settings import RosSettings
+    from ddvs_service.protocol.session import SessionConfig
+    from ddvs_service.service.config import ControlSettings, RegistrationSettings, ServiceConfig
+
+    # levels 3: the pyramid of the measured arm runs (the schema's default lets the ROI size choose, 8 at most)
+    registration = RegistrationSettings(template_size=settings.template, levels=3, global_init=True)
+    if settings.gain_grid is not None:
+        registration = registration.replaced(gain_grid=settings.gain_grid)
+    return ServiceConfig(
+        prefix=settings.prefix,
+        robot=settings.robot,
+        zenoh=SessionConfig(mode="peer", listen=[f"tcp/127.0.0.1:{listen}"], connect=[f"tcp/127.0.0.1:{sim_port}"]),
+        state_dir=settings.out_dir / "state",
+        registration=registration,
+        control=ControlSettings(law=settings.law, gains=settings.gain, stop_threshold=settings.stop_threshold),
+        ros=RosSettings(domain_id=settings.ros_domain_id),
+    )
 
 
 def run_arm(settings: ArmRunSettings, progress: Callable[[dict[str, Any]], None] | None = None) -> ArmRunResult:
@@ -268,8 +276,8 @@ def open_arm_run(settings: ArmRunSettings) -> Iterator[ArmRun]:
     sim_port, serve_port = _free_port(), _free_port()
     serve = service_config(settings, serve_port, sim_port)
     if settings.launch.get("serve", ChildLaunch()).zenoh is not None:
-        serve["zenoh"] = {}  # the launch flags give the endpoints
-    (out / "serve.json").write_text(json.dumps(serve, indent=2))
+        serve = serve.model_copy(update={"zenoh": type(serve.zenoh)()})  # the launch flags give the endpoints
+    (out / "serve.json").write_text(serve.model_dump_json(indent=2))
     common = ["--prefix", settings.prefix, "--robot", settings.robot]
     if settings.ros_domain_id is not None:
         common += ["--ros-domain-id", str(settings.ros_domain_id)]

@@ -8,7 +8,7 @@ centre 1 m in front of the reference camera, fronto-parallel, textured with `TEX
 and ViSP's `vpImageSimulator`; "distractors" — the same with the texture `DISTRACTOR_TEXTURE` as backdrop; "tiled" —
 the texture repeated mirrored over the whole surface (a target filling any view; it has twin poses); the
 paper's 200×150 ROI centred on the control point `m*' = [0, 0, 1]`; λ = 0.4 (1/s) on every axis; the service's
-default twist saturation (`ControlSettings`); stop when the error norm is below 1e-3.
+default twist saturation (`LawSettings`); stop when the error norm is below 1e-3.
 - "planar": a plane. Geometry: the service's tracking session (`service.estimators.tracking_session`) of the planar
   model (planar tracker + direct global initialiser on the first frame and after a lost frame; `e = 0`, `ρ* = 0`).
 - "saddle": the paper's horse saddle `Z = 1 + (X² − Y²)/a`, a = 1 m. Geometry: the same session of the general
@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
-from ddvs_service.service.config import ControlSettings, RegistrationSettings
+from ddvs_service.service.config import RegistrationSettings
 from ddvs_service.service.estimators import tracking_session
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
 from orchestration.journal import run_journalled
@@ -228,9 +228,8 @@ def run_trial(target: str, law: str, size: float, trial: int, settings: DomainSe
     # the pyramid of the measured sweeps (the default is the engine's 8)
     registration = RegistrationSettings(levels=3, model="general" if target == "saddle" else "planar")
     estimator = tracking_session(reference, ROI, registration)
-    limits = ControlSettings()
-    control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=settings.gain, stop_threshold=settings.threshold,
-                                       max_linear=limits.max_linear, max_angular=limits.max_angular), CAMERA)
+    control = ControlLaw(ControlConfig(law=LAW_NAMES[law], gains=settings.gain, stop_threshold=settings.threshold),
+                         CAMERA)
     plant = FreeFlyer(surface, CAMERA, np.eye(4), T_ref_start, settings.dt, texture=texture, backdrop=backdrop)
     outcome, note, norm, untracked, images = "budget", f"not converged in {settings.max_images} images", np.nan, 0, 0
     registered, min_in_view = 0, 1.0

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.control.law import ControlConfig, ControlLaw
+from ddvs_service.control.law import ControlConfig, ControlLaw, LawName
 from ddvs_service.lie import pose_inv, so3_log
 from orchestration.experiment_synthetic import (
     GEOMETRY_SOURCES,
@@ -169,7 +169,7 @@ def run_arm_experiment(law: str, out: Path, settings: PaperSettings) -> dict[str
     }
 
 
-def arm_measures(recording: Any, law: str, gain: float, target_centre: F64) -> dict[str, float]:
+def arm_measures(recording: Any, law: LawName, gain: float, target_centre: F64) -> dict[str, float]:
     """Retreat (mm) and coupling measures of an arm recording (module docstring). Uses the SERVOING frames up to
     the first CONVERGED one that have a ground-truth pose with the same stamp; the commanded linear velocity is
     `λ ε_v` from the recorded error (before the service's saturation, as in the synthetic experiment)."""
@@ -178,7 +178,7 @@ def arm_measures(recording: Any, law: str, gain: float, target_centre: F64) -> d
     info = recording["camera_info"][0]
     intr = Intrinsics.from_matrix(np.asarray(info["k"], dtype=np.float64).reshape(3, 3), info["width"],
                                   info["height"])
-    control = ControlLaw(ControlConfig(law, gains=gain), intr)
+    control = ControlLaw(ControlConfig(law=law, gains=gain), intr)
     T_world_ref = reference_pose(recording)
     if T_world_ref is None:
         raise ValueError("the recording has no reference_pose in its meta: cannot measure retreat and coupling")

@@ -295,7 +295,7 @@ def servo(run: Run, plant: Plant, pipeline: ServoPipeline, roi: Roi, condition: 
     assert told is not None, "the pipeline needs the told intrinsics"
     pipeline.machine.start()
     p_star = pipeline.control_px
-    truth_law = ControlLaw(ControlConfig(config.control.law, gains=config.control.gains, stop_threshold=0.0), told)
+    truth_law = ControlLaw(ControlConfig(law=config.control.law, gains=config.control.gains, stop_threshold=0.0), told)
     rng = np.random.default_rng([7, condition.latency_frames, round(1000 * condition.drop_fraction)])
     pending: deque[F64] = deque([np.zeros(6)] * condition.latency_frames)
     applied = np.zeros(6)

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.control.law import ControlConfig, ControlLaw
+from ddvs_service.control.law import MAX_ANGULAR_SPEED, MAX_LINEAR_SPEED, ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from sim.freeflyer import Frame, FreeFlyer, render_view
 from sim.surfaces import paper_saddle
@@ -182,7 +182,9 @@ def run_synthetic(law: str, setup: SyntheticSetup = SyntheticSetup(), geometry: 
         raise ValueError(f"unknown geometry source {geometry!r}; expected one of {sorted(GEOMETRY_SOURCES)}")
     intr = Intrinsics.centred(setup.f, setup.width, setup.height)
     saddle = paper_saddle(setup.depth, setup.a)
-    control = ControlLaw(ControlConfig(LAW_NAMES[law], gains=setup.gain, stop_threshold=setup.threshold), intr)
+    # the paper's laws saturate nothing: the widest limits the schema accepts, which these runs never reach
+    control = ControlLaw(ControlConfig(law=LAW_NAMES[law], gains=setup.gain, stop_threshold=setup.threshold,
+                                       max_linear=MAX_LINEAR_SPEED, max_angular=MAX_ANGULAR_SPEED), intr)
     texture = load_texture(setup.texture) if geometry != "exact" else None
     plant = FreeFlyer(saddle, intr, np.eye(4), pose(so3_exp(setup.r), setup.t), setup.dt, texture=texture,
                       scaling=setup.scaling)

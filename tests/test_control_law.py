@@ -24,17 +24,17 @@ def truth(t, r, scaling: str = "sl3"):
 @pytest.mark.parametrize(
     ("config", "condition"),
     [
-        (ControlConfig("ddvs", c_star=(0.0, 0.0, 2.0)), "(17)"),
-        (ControlConfig("ddvs", c_star=(0.0, 0.0, 3.0)), "(35)"),
-        (ControlConfig("ddvs", gains=(0.4, 0.4, -0.4, 0.4, 0.4, 0.4)), "(28)"),
-        (ControlConfig("ddvs", gains=(0.4, 0.4, 0.4, -0.4, 0.4, 0.4)), "(27)"),
-        (ControlConfig("ddvs", gains=(0.4, 0.4, 0.4, -0.4, 0.4, 0.4), c_star=(0.0, 0.0, 3.0)), "(27)"),
-        (ControlConfig("ddvs", gains=(0.4, -0.4, 0.4, 0.4, 0.4, 0.4)), "(26)"),
-        (ControlConfig("ddvs", gains=(-0.4, -0.4, 0.4, 0.4, 0.4, 0.4)), "(26)"),
-        (ControlConfig("ddvs", q_star=(0.0, 0.0, 2.5), z_star=1.0), "(26)"),
-        (ControlConfig("ddvs", q_star=(0.0, 0.0, 2.0), z_star=1.0), "(18)"),
-        (ControlConfig("dvs_reduced", gains=(0.4, 0.4, 0.4, 0.4, 0.4, -0.1)), "(12)"),
-        (ControlConfig("dvs_reduced", q_star=(0.0, 0.0, 2.5), z_star=1.0), "(34)"),
+        (ControlConfig(law="ddvs", c_star=(0.0, 0.0, 2.0)), "(17)"),
+        (ControlConfig(law="ddvs", c_star=(0.0, 0.0, 3.0)), "(35)"),
+        (ControlConfig(law="ddvs", gains=(0.4, 0.4, -0.4, 0.4, 0.4, 0.4)), "(28)"),
+        (ControlConfig(law="ddvs", gains=(0.4, 0.4, 0.4, -0.4, 0.4, 0.4)), "(27)"),
+        (ControlConfig(law="ddvs", gains=(0.4, 0.4, 0.4, -0.4, 0.4, 0.4), c_star=(0.0, 0.0, 3.0)), "(27)"),
+        (ControlConfig(law="ddvs", gains=(0.4, -0.4, 0.4, 0.4, 0.4, 0.4)), "(26)"),
+        (ControlConfig(law="ddvs", gains=(-0.4, -0.4, 0.4, 0.4, 0.4, 0.4)), "(26)"),
+        (ControlConfig(law="ddvs", q_star=(0.0, 0.0, 2.5), z_star=1.0), "(26)"),
+        (ControlConfig(law="ddvs", q_star=(0.0, 0.0, 2.0), z_star=1.0), "(18)"),
+        (ControlConfig(law="dvs_reduced", gains=(0.4, 0.4, 0.4, 0.4, 0.4, -0.1)), "(12)"),
+        (ControlConfig(law="dvs_reduced", q_star=(0.0, 0.0, 2.5), z_star=1.0), "(34)"),
     ],
 )
 def test_unstable_configurations_are_refused_naming_the_condition(config: ControlConfig, condition: str) -> None:
@@ -43,13 +43,14 @@ def test_unstable_configurations_are_refused_naming_the_condition(config: Contro
 
 
 def test_stable_configurations_are_accepted() -> None:
-    ControlLaw(ControlConfig("ddvs"), INTR)
-    ControlLaw(ControlConfig("ddvs", q_star=(0.0, 0.0, 1.0), z_star=1.0), INTR)
+    ControlLaw(ControlConfig(law="ddvs"), INTR)
+    ControlLaw(ControlConfig(law="ddvs", q_star=(0.0, 0.0, 1.0), z_star=1.0), INTR)
     # c*'ᵀm*' > 2 with negative λ4, λ5 satisfies (27)
-    ControlLaw(ControlConfig("ddvs", gains=(0.4, 0.4, 0.4, -0.4, -0.4, 0.4), c_star=(0.0, 0.0, 3.0)), INTR)
+    ControlLaw(ControlConfig(law="ddvs", gains=(0.4, 0.4, 0.4, -0.4, -0.4, 0.4), c_star=(0.0, 0.0, 3.0)), INTR)
     # negative λ1, λ2 are stable when the control point is far behind the plane (2/z* − m*'ᵀq*' < 0)
-    ControlLaw(ControlConfig("ddvs", gains=(-0.4, -0.4, 0.4, 0.4, 0.4, 0.4), q_star=(0.0, 0.0, 2.5), z_star=1.0), INTR)
-    ControlLaw(ControlConfig("dvs", gains=0.4, p_star=(100.0, 50.0)), INTR)
+    ControlLaw(ControlConfig(law="ddvs", gains=(-0.4, -0.4, 0.4, 0.4, 0.4, 0.4), q_star=(0.0, 0.0, 2.5), z_star=1.0),
+               INTR)
+    ControlLaw(ControlConfig(law="dvs", gains=0.4, p_star=(100.0, 50.0)), INTR)
 
 
 @pytest.mark.parametrize(
@@ -71,8 +72,8 @@ def test_invalid_configuration_values_are_refused(kwargs: dict) -> None:
 
 def test_saturation_keeps_the_twist_direction() -> None:
     gt = truth([0.17, -0.11, 0.01], [-0.1, -0.31, 1.04])
-    free = ControlLaw(ControlConfig("ddvs"), INTR).compute(gt.G, gt.e, gt.rho)
-    law = ControlLaw(ControlConfig("ddvs", max_linear=0.01, max_angular=0.05), INTR)
+    free = ControlLaw(ControlConfig(law="ddvs"), INTR).compute(gt.G, gt.e, gt.rho)
+    law = ControlLaw(ControlConfig(law="ddvs", max_linear=0.01, max_angular=0.05), INTR)
     out = law.compute(gt.G, gt.e, gt.rho)
     assert out.saturated and not free.saturated
     assert np.linalg.norm(out.twist[:3]) <= 0.01 + 1e-12 and np.linalg.norm(out.twist[3:]) <= 0.05 + 1e-12
@@ -82,15 +83,15 @@ def test_saturation_keeps_the_twist_direction() -> None:
 
 def test_stop_criterion_commands_zero_twist() -> None:
     gt = truth([1e-6, 0.0, 0.0], [0.0, 0.0, 1e-6])
-    out = ControlLaw(ControlConfig("ddvs", stop_threshold=1e-3), INTR).compute(gt.G, gt.e, gt.rho)
+    out = ControlLaw(ControlConfig(law="ddvs", stop_threshold=1e-3), INTR).compute(gt.G, gt.e, gt.rho)
     assert out.converged and not out.saturated and out.error_norm < 1e-3
     assert np.all(out.twist == 0.0)
-    far = ControlLaw(ControlConfig("ddvs", stop_threshold=1e-9), INTR).compute(gt.G, gt.e, gt.rho)
+    far = ControlLaw(ControlConfig(law="ddvs", stop_threshold=1e-9), INTR).compute(gt.G, gt.e, gt.rho)
     assert not far.converged and np.linalg.norm(far.twist) > 0.0
 
 
 def test_non_finite_inputs_raise_instead_of_returning_nan() -> None:
-    law = ControlLaw(ControlConfig("dvs_reduced"), INTR)
+    law = ControlLaw(ControlConfig(law="dvs_reduced"), INTR)
     with pytest.raises(ValueError, match="G"):
         law.compute(np.full((3, 3), np.nan), np.zeros(3), 0.0)
     with pytest.raises(ValueError, match="e"):
@@ -103,9 +104,9 @@ def test_laws_use_their_own_errors_and_gains() -> None:
     gt = truth([0.05, 0.02, -0.03], [0.1, -0.2, 0.3])
     m = np.array([0.0, 0.0, 1.0])
     gains = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
-    out = ControlLaw(ControlConfig("dvs_reduced", gains=gains), INTR).compute(gt.G, gt.e, gt.rho)
+    out = ControlLaw(ControlConfig(law="dvs_reduced", gains=gains), INTR).compute(gt.G, gt.e, gt.rho)
     np.testing.assert_allclose(out.twist, np.array(gains) * reduced_error(gt.G, gt.e, gt.rho, INTR.K, m))
-    out = ControlLaw(ControlConfig("dvs", gains=gains), INTR).compute(gt.G, gt.e, gt.rho)
+    out = ControlLaw(ControlConfig(law="dvs", gains=gains), INTR).compute(gt.G, gt.e, gt.rho)
     np.testing.assert_allclose(out.twist, np.array(gains) * dvs_error(gt.G, gt.e, gt.rho, INTR.K, m))
 
 

@@ -64,12 +64,10 @@ def test_general_gains_stay_in_range(dimmed_and_occluded, interpolation: str) ->
 def test_gains_within_range_leave_a_good_fit_alone(dimmed_and_occluded) -> None:
     """The service's Tukey weights keep the same occluder out of the fit: every node near the true gain of 3, the
     fit converged within 0.2 px at the ROI's corners, as without the bound."""
-    from dataclasses import replace
-
     from ddvs_service.registration.planar import PlanarRegistration
 
     reference, current = dimmed_and_occluded
-    result = PlanarRegistration.prepare(reference, ROI, config=replace(_config(), robust="tukey")).run(
+    result = PlanarRegistration.prepare(reference, ROI, config=_config().replaced(robust="tukey")).run(
         current, G0=np.eye(3), gains0=3.0, scale0=12.0, first_level=0, tolerance_px=1e-2, scale_cap=7.0)
     x, y, w, h = ROI
     corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1.0, 1.0, 1.0, 1.0]])

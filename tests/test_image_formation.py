@@ -14,7 +14,7 @@ from ddvs_service.registration.defocus import DEFAULT_RADII, register_defocus
 from ddvs_service.registration.images import irradiance
 from ddvs_service.registration.planar import register
 from evaluation.defocus import defocused
-from evaluation.pairs import CAMERA_GAMMA, centred_roi, corner_error, ground_truth, load
+from evaluation.pairs import CAMERA_GAMMA, ONE_GAIN_HUBER, centred_roi, corner_error, ground_truth, load
 from kernels.backend import init
 from kernels.image_formation import defocus_kernel, disk_blur, linearise
 
@@ -79,18 +79,19 @@ def test_defocus_in_irradiance_biases_encoded_levels(synthetic_pair):
     """The bias the model removes: compared in encoded levels, with or without a blurred reference, the optimum is
     off by far more than the engine's accuracy."""
     sharp, current, H, roi = synthetic_pair
-    plain = register(sharp, current, roi=roi)
+    plain = register(sharp, current, roi=roi, config=RegistrationConfig(**ONE_GAIN_HUBER))
     assert corner_error(H, plain.H, roi) > 0.5
-    blurred_only = register(sharp, current, roi=roi, config=RegistrationConfig(defocus_px=5.0))
+    blurred_only = register(sharp, current, roi=roi, config=RegistrationConfig(defocus_px=5.0, **ONE_GAIN_HUBER))
     assert corner_error(H, blurred_only.H, roi) > 0.3
 
 
 def test_gamma_and_defocus_recover_the_warp(synthetic_pair):
     sharp, current, H, roi = synthetic_pair
-    fixed = register(sharp, current, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=5.0))
+    fixed = register(sharp, current, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA, defocus_px=5.0,
+                                                                                     **ONE_GAIN_HUBER))
     assert fixed.converged, fixed.reason
     assert corner_error(H, fixed.H, roi) < 0.1
-    fit = register_defocus(sharp, current, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA))
+    fit = register_defocus(sharp, current, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA, **ONE_GAIN_HUBER))
     assert fit.result.converged, fit.result.reason
     assert fit.defocus_px == pytest.approx(5.0, abs=0.5)
     assert corner_error(H, fit.result.H, roi) < 0.1
@@ -113,7 +114,7 @@ def test_blurred_bikes_within_a_pixel(seq, k, size):
     two independent SIFT fits (`benchmarks/bikes_ground_truth.py`) and is held to 2 px."""
     ref, cur = load(seq, 1), load(seq, k)
     roi = centred_roi(ref.shape, *size)
-    fit = register_defocus(ref, cur, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA))
+    fit = register_defocus(ref, cur, roi=roi, config=RegistrationConfig(gamma=CAMERA_GAMMA, **ONE_GAIN_HUBER))
     assert fit.result.converged, fit.result.reason
     assert 2.5 <= fit.defocus_px <= 6.5
     bound = 2.0 if (k, size) == (6, (400, 300)) else 1.0

@@ -200,7 +200,7 @@ def test_tracker_follows_an_occluder_sliding_over_more_than_half_the_template() 
     from ddvs_service.registration.config import RegistrationConfig
     from ddvs_service.registration.tracker import Tracker
 
-    config = RegistrationConfig(levels=3, robust="tukey")
+    config = RegistrationConfig(levels=3, robust="tukey", gain_grid=(1, 1))  # one gain, as measured
     roi = (90, 50, 140, 140)
     x, y, w, h = roi
     corners = np.array([[x, x + w - 1, x + w - 1, x], [y, y, y + h - 1, y + h - 1], [1.0, 1.0, 1.0, 1.0]])

@@ -8,11 +8,14 @@ from __future__ import annotations
 import pytest
 from conftest import pairs
 
+from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.planar import register
-from evaluation.pairs import ROI_SIZES, centred_roi, corner_error, ground_truth, load
+from evaluation.pairs import ONE_GAIN_HUBER, ROI_SIZES, centred_roi, corner_error, ground_truth, load
 
 MET = [("boat", 2), ("bikes", 2), ("bikes", 3)] + [("leuven", k) for k in range(2, 7)]
 SLACK_PX = 0.05  # leuven 1→6 ends at 1.00 px
+
+COLD = RegistrationConfig(**ONE_GAIN_HUBER)
 
 
 @pytest.mark.parametrize("seq, k", pairs([*MET, ("bikes", 4)]))
@@ -22,7 +25,7 @@ def test_corner_error_from_identity(seq, k, size):
     translation search (324 px); it ends at 1.05 px, hence its bound of 1.1 px."""
     ref, cur = load(seq, 1), load(seq, k)
     roi = centred_roi(ref.shape, *size)
-    result = register(ref, cur, roi=roi)
+    result = register(ref, cur, roi=roi, config=COLD)
     assert result.converged, result.reason
     bound = 1.1 if (seq, k) == ("bikes", 4) else 1.0 + SLACK_PX
     assert corner_error(ground_truth(seq, k), result.H, roi) <= bound
@@ -36,7 +39,7 @@ def test_blurred_bikes_cold_start_reaches_the_optimum(seq, k, size):
     ~5 px defocus disk — must still find that optimum, not another one."""
     ref, cur, truth = load(seq, 1), load(seq, k), ground_truth(seq, k)
     roi = centred_roi(ref.shape, *size)
-    cold = register(ref, cur, roi=roi)
-    warm = register(ref, cur, roi=roi, G0=truth)
+    cold = register(ref, cur, roi=roi, config=COLD)
+    warm = register(ref, cur, roi=roi, G0=truth, config=COLD)
     assert corner_error(cold.H, warm.H, roi) <= 0.05
     assert corner_error(truth, cold.H, roi) <= 3.0

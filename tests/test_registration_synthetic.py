@@ -10,7 +10,7 @@ from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.planar import register
 from ddvs_service.registration.solver import DEGENERATE_RCOND, degeneracy, remaining_motion
 from ddvs_service.registration.tracker import Tracker
-from evaluation.pairs import load
+from evaluation.pairs import ONE_GAIN_HUBER, load
 
 ROI = (325, 265, 200, 150)  # central 200×150 of the 850×680 boat image
 
@@ -134,7 +134,7 @@ def test_tracker_converges_in_few_iterations(predict, median_bound, max_bound):
     `registration.integrity`: the 2 px the frame starts off are weighted down on the first iterations)."""
     img = load("boat", 1)
     truths = [similarity_about(CENTRE, (1.6 * k, 1.2 * k), 0.1 * k, 1.0 + 0.001 * k) for k in range(13)]
-    tracker = Tracker.prepare(img, ROI, RegistrationConfig(predict_motion=predict))
+    tracker = Tracker.prepare(img, ROI, RegistrationConfig(predict_motion=predict, **ONE_GAIN_HUBER))
     iterations = []
     for H_true in truths:
         result = tracker.track(warp(img, H_true))

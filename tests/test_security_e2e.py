@@ -39,6 +39,7 @@ from ddvs_service.protocol import (
     parse_message,
 )
 from ddvs_service.protocol.audit import audit_key
+from ddvs_service.protocol.session import SessionConfig
 from ddvs_service.protocol.upload import encode_upload
 from orchestration.arm_run import BRIDGE, ROOT, SCENE, ArmRunSettings, child, render_reference, service_config
 
@@ -83,9 +84,9 @@ def test_arm_servo_converges_secured_by_security_init_while_an_observer_interfer
     def role_file(role: str) -> str:
         return f"{secure_dir}/{role}-mtls.json5"
 
-    serve = service_config(settings, 0, 0)
-    serve["zenoh"] = {"mode": "client", "connect": [endpoint], "zenoh_config": role_file("service")}
-    (tmp_path / "serve.json").write_text(json.dumps(serve))
+    serve = service_config(settings, 0, 0).model_copy(update={"zenoh": SessionConfig(
+        mode="client", connect=[endpoint], zenoh_config=Path(role_file("service")))})
+    (tmp_path / "serve.json").write_text(serve.model_dump_json())
     common = ["--prefix", KEYS.prefix, "--robot", KEYS.robot]
     secure = ["--mode", "client", "--connect", endpoint]
     logs = tmp_path / "logs"

@@ -8,10 +8,12 @@ applied as `T ← T · exp(twist · dt)`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.control.errors import (
@@ -20,63 +22,63 @@ from ddvs_service.control.errors import (
     dvs_error_normalised,
     reduced_error_normalised,
 )
-from ddvs_service.control.stability import LAWS, check_configuration
+from ddvs_service.control.stability import check_configuration
+from ddvs_service.settings import Settings
 
 F64 = NDArray[np.float64]
 
 
-def _optional_vector(x: ArrayLike | None, size: int, name: str) -> tuple[float, ...] | None:
-    if x is None:
-        return None
-    a = np.asarray(x, dtype=np.float64).reshape(-1)
-    if a.size != size or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be {size} finite numbers, got {x!r}")
-    return tuple(float(v) for v in a)
+MAX_GAIN = 10.0  # 1/s, largest |λ| accepted
+MAX_LINEAR_SPEED = 10.0  # m/s, largest `max_linear` accepted
+MAX_ANGULAR_SPEED = 10.0  # rad/s, largest `max_angular` accepted
+MAX_PIXEL = 65536.0  # largest |coordinate| of a control pixel accepted
+
+LawName = Literal["dvs", "dvs_reduced", "ddvs"]
+Gain = Annotated[float, Field(ge=-MAX_GAIN, le=MAX_GAIN)]
+Pixel = Annotated[float, Field(ge=-MAX_PIXEL, le=MAX_PIXEL)]
+Direction = Annotated[float, Field(ge=-100.0, le=100.0)]
 
 
-@dataclass(frozen=True)
-class ControlConfig:
-    """Configuration of a control law, validated at construction (law name, gains, limits) and again, with the
-    intrinsics, when a `ControlLaw` is built (stability conditions, see `stability.check_configuration`).
+class LawSettings(Settings):
+    """The settings of a servo law that a user chooses (the service's `control` settings extend them): law, gains,
+    control point, saturation and stop threshold. Ranges and descriptions in each `Field`.
 
     - `law`: "dvs" (full error (7) with `θμ`, `v = Λ ε`), "dvs_reduced" ((13), `v = Λ ε'`, the paper's DVS runs)
       or "ddvs" ((16), `v = Λ ε̄`).
-    - `gains`: one gain or 6 per-axis gains `λ1..λ6` (1/s), applied as `diag(gains)`.
-    - `p_star`: control pixel (u, v) in the reference image (default: principal point, `m*' = [0, 0, 1]`).
-    - `c_star`: the normalised 3-vector `c*'` of (15) (default `m*'`); used by "ddvs" only.
     - `max_linear` (m/s), `max_angular` (rad/s): the whole twist is scaled down so that `‖v‖` and `‖ω‖` respect
       both limits (its direction is kept).
-    - `stop_threshold`: the law reports `converged` and commands zero twist when the norm of its error is below it.
-    - `q_star` (1/m) and `z_star` (m): optional metric knowledge (simulation only) enabling conditions (18), (34).
     """
 
-    law: str = "ddvs"
-    gains: float | tuple[float, ...] = 0.4
-    p_star: tuple[float, float] | None = None
-    c_star: tuple[float, float, float] | None = None
-    max_linear: float = math.inf
-    max_angular: float = math.inf
-    stop_threshold: float = 1e-3
-    q_star: tuple[float, float, float] | None = None
-    z_star: float | None = None
-    gain_vector: tuple[float, ...] = field(init=False, repr=False)
+    law: LawName = Field(default="ddvs", description=(
+        "dvs: the full error (7), v = Λ ε; dvs_reduced: the reduced error (13), v = Λ ε' (the paper's DVS runs); "
+        "ddvs: the decoupled error (16), v = Λ ε̄ (25)."))
+    gains: Gain | tuple[Gain, Gain, Gain, Gain, Gain, Gain] = Field(default=0.4, description=(
+        f"One gain or 6 per-axis gains λ1..λ6 (1/s), each within ±{MAX_GAIN}, applied as diag(gains); their signs "
+        "are checked against the stability conditions (26)-(28), (34)."))
+    p_star: tuple[Pixel, Pixel] | None = Field(default=None, description=(
+        "Control pixel (u, v) in the reference image; null: the principal point (m*' = [0, 0, 1])."))
+    c_star: tuple[Direction, Direction, Direction] | None = Field(default=None, description=(
+        "The normalised 3-vector c*' of (15), each entry within ±100; null: m*'. Used by ddvs only."))
+    max_linear: float = Field(default=0.25, gt=0.0, le=MAX_LINEAR_SPEED, description=(
+        "Saturation of the linear velocity ‖v‖, m/s (the twist is scaled, its direction kept)."))
+    max_angular: float = Field(default=0.8, gt=0.0, le=MAX_ANGULAR_SPEED, description=(
+        "Saturation of the angular velocity ‖ω‖, rad/s (the twist is scaled, its direction kept)."))
+    stop_threshold: float = Field(default=1e-3, ge=0.0, le=1.0, description=(
+        "Norm of the control error below which the servo stops (zero twist); 0: never."))
 
-    def __post_init__(self) -> None:
-        if self.law not in LAWS:
-            raise ValueError(f"unknown control law {self.law!r}; expected one of {LAWS}")
-        g = np.asarray(self.gains, dtype=np.float64).reshape(-1)
-        if g.size not in (1, 6) or not np.all(np.isfinite(g)):
-            raise ValueError(f"gains must be one or 6 finite numbers (1/s), got {self.gains!r}")
-        object.__setattr__(self, "gain_vector", tuple(float(v) for v in np.broadcast_to(g, (6,))))
-        object.__setattr__(self, "p_star", _optional_vector(self.p_star, 2, "p_star"))
-        object.__setattr__(self, "c_star", _optional_vector(self.c_star, 3, "c_star"))
-        object.__setattr__(self, "q_star", _optional_vector(self.q_star, 3, "q_star"))
-        if not (self.max_linear > 0.0 and self.max_angular > 0.0):
-            raise ValueError(f"velocity limits must be positive, got {self.max_linear} m/s, {self.max_angular} rad/s")
-        if not (math.isfinite(self.stop_threshold) and self.stop_threshold >= 0.0):
-            raise ValueError(f"stop_threshold must be a finite non-negative error norm, got {self.stop_threshold}")
-        if self.z_star is not None and not (math.isfinite(self.z_star) and self.z_star > 0.0):
-            raise ValueError(f"z_star must be a positive depth in metres, got {self.z_star}")
+    @property
+    def gain_vector(self) -> tuple[float, ...]:
+        """The 6 gains λ1..λ6 (1/s)."""
+        return (self.gains,) * 6 if isinstance(self.gains, float) else self.gains
+
+
+class ControlConfig(LawSettings):
+    """Configuration of a control law: `LawSettings`, checked again with the intrinsics when a `ControlLaw` is built
+    (stability conditions, see `stability.check_configuration`), and optional metric knowledge (simulation and
+    analysis only) enabling conditions (18), (34): `q_star` (1/m) and `z_star` (m)."""
+
+    q_star: tuple[float, float, float] | None = Field(default=None, description="q*' = n*/d* of the plane, 1/m.")
+    z_star: float | None = Field(default=None, gt=0.0, description="Depth of the control point, m.")
 
 
 @dataclass(frozen=True)

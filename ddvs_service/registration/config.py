@@ -1,9 +1,15 @@
-"""Settings of the planar direct registration (eq. (5)); validated on construction."""
+"""Settings of the planar direct registration (eq. (5)): the one definition of each engine setting, its default and
+its range, validated on construction (pydantic). The service's `registration` settings extend this model
+(`service.config.RegistrationSettings`), so an engine setting means the same and defaults the same everywhere.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal, Self
+
+from pydantic import Field, model_validator
+
+from ddvs_service.settings import Settings
 
 RobustLoss = Literal["huber", "tukey", "none"]
 ROBUST_CODES: dict[str, int] = {"none": 0, "huber": 1, "tukey": 2}
@@ -11,25 +17,31 @@ MAX_GAIN_NODES_PER_AXIS = 4
 MIN_GAMMA, MAX_GAMMA = 0.2, 5.0  # camera response exponents accepted
 MAX_DEFOCUS_PX = 16.0  # largest relative defocus radius accepted (full-resolution pixels)
 PIXELS_PER_BAND = 16384  # ROI pixels per row band of a step kernel's reduction (see `bands`)
+MAX_ITERATIONS = 200  # Gauss-Newton iterations per level accepted: a bound on one frame's work
+GainNodes = Annotated[int, Field(ge=1, le=MAX_GAIN_NODES_PER_AXIS)]
+GainBound = Annotated[float, Field(gt=0.0, le=1000.0)]
 
 
-@dataclass(frozen=True)
-class RegistrationConfig:
-    """How `register` and `Tracker` minimise eq. (5).
+class RegistrationConfig(Settings):
+    """How `register` and `Tracker` minimise eq. (5). Each field's description and range is in its `Field`; the
+    reasons behind the defaults:
 
     - `levels`: pyramid levels at most (1 = full resolution only); fewer are used when the ROI would shrink below
       `min_level_size` pixels on a side. The default (8) lets the ROI size choose: a 200×150 ROI gets 4 levels
       (coarsest 25×18 px), enough for 40 px + 20° + 15 % scale from identity.
     - `max_iterations`: Gauss-Newton iterations per level.
     - `gain_grid`: (rows, cols) of the bilinear gain surface S of eq. (4) over the ROI; (1, 1) = one global gain.
+      The default 3×3 comes from the robustness matrix (README "Robustness"): a single gain cannot represent a
+      light ramp, and it leaves the servo farther from the goal at the stop even on clean frames.
     - `gain_range`: (lowest, highest) value of a gain node of S. `S · I + β` maps the current frame's grey levels
       (or irradiance) to the reference's, so a physical camera's gain is positive; the solver projects every update
       of the nodes onto this range (`solver.bounded_gains`). Without the bound a node under an occluder on a dimmed
-      scene went negative (issue 20, README "Robustness"), the surface absorbing the foreign object with an
+      scene went negative (README "Robustness"), the surface absorbing the foreign object with an
       inverted image. 0.02 … 50: a frame 50× brighter or darker than the reference (an 8-bit frame 50× darker
       keeps 5 grey levels of the target); γ 2.2 raises an encoded ratio to the power 2.2 (3.5× darker: 16).
     - `robust`: M-estimator (Huber k = 1.345 σ, Tukey c = 4.685 σ, or plain least squares); σ = 1.4826 · median |r|,
-      never below `scale_floor` grey levels.
+      never below `scale_floor` grey levels. The default Tukey (robustness matrix): its zero weight beyond 4.685 σ
+      keeps an occluder out of the fit; Huber's bounded weight lets it drag the fit until the servo is LOST.
     - `min_inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged.
     - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
     - `step_tolerance_px`: convergence when the ROI corners are within this many full-resolution pixels of the
@@ -69,63 +81,60 @@ class RegistrationConfig:
       (docs/performance.md).
     """
 
-    levels: int = 8
-    max_iterations: int = 30
-    gain_grid: tuple[int, int] = (1, 1)
-    gain_range: tuple[float, float] = (0.02, 50.0)
-    robust: RobustLoss = "huber"
-    min_inlier_ratio: float = 0.5
-    min_valid_ratio: float = 0.3
-    step_tolerance_px: float = 1e-3
-    coarse_step_tolerance_px: float = 0.05
-    tracking_step_tolerance_px: float = 1e-2
-    tracking_levels: int = 1
-    tracking_give_up_iterations: int = 10
-    predict_motion: bool = True
-    max_step_fraction: float = 0.25
-    scale_floor: float = 0.5
-    min_level_size: int = 16
-    bands: int = 8
-    gamma: float = 1.0
-    defocus_px: float = 0.0
+    levels: int = Field(default=8, ge=1, le=8, description=(
+        "Pyramid levels at most (1 = full resolution only); fewer are used when the ROI would shrink below "
+        "`min_level_size` pixels on a side."))
+    max_iterations: int = Field(default=30, ge=1, le=MAX_ITERATIONS, description=(
+        "Gauss-Newton iterations per pyramid level."))
+    gain_grid: tuple[GainNodes, GainNodes] = Field(default=(3, 3), description=(
+        "(rows, cols) of the bilinear gain surface S of eq. (4) over the ROI, each 1 to 4; (1, 1) = one global "
+        "gain."))
+    gain_range: tuple[GainBound, GainBound] = Field(default=(0.02, 50.0), description=(
+        "(lowest, highest) value of a gain node of S, 0 < lowest < highest ≤ 1000: every update of the nodes is "
+        "projected onto this range."))
+    robust: RobustLoss = Field(default="tukey", description=(
+        "M-estimator of eq. (5): huber (k = 1.345 σ), tukey (c = 4.685 σ) or none (plain least squares)."))
+    min_inlier_ratio: float = Field(default=0.5, gt=0.0, le=1.0, description=(
+        "Fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged."))
+    min_valid_ratio: float = Field(default=0.3, gt=0.0, le=1.0, description=(
+        "Fraction of the ROI that must stay inside the current image, else the estimate diverged."))
+    step_tolerance_px: float = Field(default=1e-3, gt=0.0, le=1.0, description=(
+        "Convergence at the finest level: the ROI corners within this many full-resolution pixels of the fixed "
+        "point."))
+    coarse_step_tolerance_px: float = Field(default=0.05, gt=0.0, le=1.0, description=(
+        "The same on the coarser levels, in level pixels."))
+    tracking_step_tolerance_px: float = Field(default=1e-2, gt=0.0, le=1.0, description=(
+        "`step_tolerance_px` for the tracker's warm-started frames."))
+    tracking_levels: int = Field(default=1, ge=1, le=8, description=(
+        "Pyramid levels the tracker uses from a warm start; it retries with every level when that does not "
+        "converge."))
+    tracking_give_up_iterations: int = Field(default=10, ge=1, le=MAX_ITERATIONS, description=(
+        "Iterations after which the tracker gives up on a level that has not converged."))
+    predict_motion: bool = Field(default=True, description=(
+        "Start a tracked frame from the constant-velocity extrapolation of the last two good estimates."))
+    max_step_fraction: float = Field(default=0.25, gt=0.0, le=1.0, description=(
+        "An update moving a corner by more than this fraction of the ROI size is scaled down."))
+    scale_floor: float = Field(default=0.5, gt=0.0, le=255.0, description=(
+        "Lowest robust scale σ, grey levels."))
+    min_level_size: int = Field(default=16, ge=8, le=1024, description=(
+        "Smallest side of the ROI at a pyramid level, pixels."))
+    bands: int = Field(default=8, ge=1, le=32, description=(
+        "Most row bands of a step kernel's reduction (parallel work items); a level uses one per "
+        f"{PIXELS_PER_BAND} ROI pixels."))
+    gamma: float = Field(default=1.0, ge=MIN_GAMMA, le=MAX_GAMMA, description=(
+        "The camera's response exponent: the engine compares irradiance 255 (I / 255)^γ (1 = grey levels as they "
+        "are; about 2.2 for sRGB-like cameras)."))
+    defocus_px: float = Field(default=0.0, ge=0.0, le=MAX_DEFOCUS_PX, description=(
+        "Defocus of the current frames relative to the reference: radius (full-resolution pixels) of the uniform "
+        "disk that blurs the reference's irradiance; 0 = none."))
+
+    @model_validator(mode="after")
+    def _gain_range_ordered(self) -> Self:
+        low, high = self.gain_range
+        if not low < high:
+            raise ValueError(f"gain_range must be (low, high) with 0 < low < high, got {self.gain_range}")
+        return self
 
     def bands_for(self, n_pixels: int) -> int:
         """Row bands for a level of `n_pixels` ROI pixels: one per `PIXELS_PER_BAND`, between 1 and `bands`."""
         return max(1, min(self.bands, -(-n_pixels // PIXELS_PER_BAND)))
-
-    def __post_init__(self) -> None:
-        if not 1 <= self.levels <= 8:
-            raise ValueError(f"levels must be in 1..8, got {self.levels}")
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be ≥ 1, got {self.max_iterations}")
-        rows, cols = self.gain_grid
-        if not (1 <= rows <= MAX_GAIN_NODES_PER_AXIS and 1 <= cols <= MAX_GAIN_NODES_PER_AXIS):
-            raise ValueError(
-                f"gain_grid must be (rows, cols) with each in 1..{MAX_GAIN_NODES_PER_AXIS}, got {rows}×{cols}"
-            )
-        low, high = self.gain_range
-        if not 0.0 < low < high < float("inf"):
-            raise ValueError(f"gain_range must be (low, high) with 0 < low < high < inf, got {self.gain_range}")
-        if self.robust not in ROBUST_CODES:
-            raise ValueError(f"robust must be one of {sorted(ROBUST_CODES)}, got {self.robust!r}")
-        for name in ("min_inlier_ratio", "min_valid_ratio", "max_step_fraction"):
-            value = getattr(self, name)
-            if not 0.0 < value <= 1.0:
-                raise ValueError(f"{name} must be in (0, 1], got {value}")
-        for name in ("step_tolerance_px", "coarse_step_tolerance_px", "tracking_step_tolerance_px"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.tracking_levels < 1:
-            raise ValueError(f"tracking_levels must be ≥ 1, got {self.tracking_levels}")
-        if self.tracking_give_up_iterations < 1:
-            raise ValueError(f"tracking_give_up_iterations must be ≥ 1, got {self.tracking_give_up_iterations}")
-        if not self.scale_floor > 0.0:
-            raise ValueError(f"scale_floor must be > 0 grey levels, got {self.scale_floor}")
-        if self.min_level_size < 8:
-            raise ValueError(f"min_level_size must be ≥ 8 pixels, got {self.min_level_size}")
-        if not MIN_GAMMA <= self.gamma <= MAX_GAMMA:
-            raise ValueError(f"gamma must be in {MIN_GAMMA}..{MAX_GAMMA}, got {self.gamma}")
-        if not 0.0 <= self.defocus_px <= MAX_DEFOCUS_PX:
-            raise ValueError(f"defocus_px must be in 0..{MAX_DEFOCUS_PX} pixels, got {self.defocus_px}")
-        if not 1 <= self.bands <= 32:
-            raise ValueError(f"bands must be in 1..32, got {self.bands}")

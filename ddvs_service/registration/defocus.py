@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -83,7 +83,7 @@ def register_defocus(
     start = None if G0 is None else np.asarray(G0, dtype=np.float64)
 
     def attempt(radius: float) -> float:
-        problem = PlanarRegistration.prepare(reference, roi=roi, mask=mask, config=replace(config, defocus_px=radius))
+        problem = PlanarRegistration.prepare(reference, roi=roi, mask=mask, config=config.replaced(defocus_px=radius))
         best = _best(runs)
         if best is None:
             result = problem.run(current, G0=start)

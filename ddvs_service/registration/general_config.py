@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
+
+from pydantic import Field
 
 from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.settings import Settings
 
 Interpolation = Literal["keys", "bspline"]
 
@@ -17,9 +19,14 @@ FLAG_LOST = "lost"  # no confident start: the global initialiser found none
 FLAG_DIVERGED = "diverged"
 
 
-@dataclass(frozen=True)
-class GeneralConfig:
-    """Settings of the general registration.
+InterpolationSetting = Annotated[Interpolation, Field(description=(
+    "How the full-resolution steps of the general model sample the current image: bspline (the interpolating cubic "
+    "B-spline; coarser levels keep Keys) or keys (Keys' cubic convolution)."))]
+DEFAULT_INTERPOLATION: Interpolation = "bspline"
+
+
+class GeneralConfig(Settings):
+    """Settings of the general registration (ranges and descriptions in each `Field`).
 
     - `base`: the planar engine's settings (pyramid, iterations, gain grid, robust loss, tolerances), shared.
     - `rho_degree`: 2 (biquadratic, 6 coefficients) or 3 (bicubic, 13).
@@ -39,21 +46,17 @@ class GeneralConfig:
       (docs/performance.md).
     """
 
-    base: RegistrationConfig = field(default_factory=RegistrationConfig)
-    rho_degree: int = 2
-    estimate_levels: int = 2
-    min_parallax_px: float = 0.05
-    min_parallax_snr: float = 10.0
-    min_margin: float = 0.002
-    distinct_epipole_deg: float = 20.0
-    interpolation: Interpolation = "bspline"
-
-    def __post_init__(self) -> None:
-        if self.rho_degree not in (2, 3):
-            raise ValueError(f"rho_degree must be 2 or 3, got {self.rho_degree}")
-        if self.estimate_levels < 1:
-            raise ValueError(f"estimate_levels must be ≥ 1, got {self.estimate_levels}")
-        if not self.min_parallax_px >= 0.0 or not self.min_parallax_snr >= 0.0:
-            raise ValueError("min_parallax_px and min_parallax_snr must be ≥ 0")
-        if self.interpolation not in ("keys", "bspline"):
-            raise ValueError(f"interpolation must be 'keys' or 'bspline', got {self.interpolation!r}")
+    base: RegistrationConfig = Field(default_factory=RegistrationConfig, description=(
+        "The planar engine's settings (pyramid, iterations, gain grid, robust loss, tolerances), shared."))
+    rho_degree: Literal[2, 3] = Field(default=2, description="2 (biquadratic, 6 coefficients) or 3 (bicubic, 13).")
+    estimate_levels: int = Field(default=2, ge=1, le=8, description=(
+        "Pyramid levels (finest first) on which ρ* is estimated from the planar solution."))
+    min_parallax_px: float = Field(default=0.05, ge=0.0, le=100.0, description=(
+        "RMS parallax displacement over the ROI (pixels) below which ρ* is declared unobserved (set to 0)."))
+    min_parallax_snr: float = Field(default=10.0, ge=0.0, le=1e6, description=(
+        "The parallax must also exceed this many standard errors."))
+    min_margin: float = Field(default=0.002, ge=0.0, le=1.0, description=(
+        "Relative cost gap to a different parallax solution below which the result is flagged ambiguous."))
+    distinct_epipole_deg: float = Field(default=20.0, gt=0.0, le=180.0, description=(
+        "Two solutions whose epipole directions differ by more than this (degrees) are different."))
+    interpolation: InterpolationSetting = DEFAULT_INTERPOLATION

@@ -116,7 +116,7 @@ class PlanarRefiner:
         config = engine.config
         self.problem = engine
         self.rival_problem = PlanarRegistration(
-            engine.prepared, replace(config, max_iterations=min(rival_iterations, config.max_iterations)),
+            engine.prepared, config.replaced(max_iterations=min(rival_iterations, config.max_iterations)),
             engine.current)
 
     def __call__(self, current: F32, G0: F64, first_level: int, rival: bool = False) -> list[Refinement]:
