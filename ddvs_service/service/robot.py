@@ -366,12 +366,12 @@ class RobotServo:
             return self.config.model_dump(mode="json", exclude={"zenoh"})
         if op == "set_config":
             assert command.config is not None
-            renamed = [key for key in ("prefix", "robot") if command.config.get(key, getattr(self.config, key))
-                       != getattr(self.config, key)]
-            if renamed:
-                raise ValueError(f"{' and '.join(renamed)} name the robot's keys and cannot change while it is "
-                                 "served: remove_robot, then add_robot under the new name")
             new = self.config.merged(command.config, self.pipeline.intrinsics)
+            start_only = self.config.start_only_changes(new)
+            if start_only:
+                raise ValueError(f"{', '.join(start_only)} cannot change while it is served: read when the robot "
+                                 "starts (prefix and robot name its keys: remove_robot, then add_robot under the new "
+                                 "name; the others: restart the service with the new configuration)")
             self.pipeline.apply_config(new)
             self.config = new
             changes = {key: value for key, value in command.config.items() if key not in NOT_PERSISTED}
