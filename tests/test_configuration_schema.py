@@ -14,6 +14,8 @@ from test_service_node import service_config
 
 from ddvs_service.control.law import ControlConfig, LawSettings
 from ddvs_service.protocol import Command, dump
+from ddvs_service.protocol.ros_settings import RosSettings
+from ddvs_service.protocol.session import SessionConfig
 from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.service.config import (
@@ -24,10 +26,10 @@ from ddvs_service.service.config import (
     ServiceConfig,
 )
 from ddvs_service.service.robot import RobotServo
-from ddvs_service.settings import Settings
 
-SCHEMA: tuple[type[Settings], ...] = (ServiceConfig, IntrinsicsConfig, RegistrationSettings, RegistrationConfig,
-                                      GeneralConfig, ControlSettings, LawSettings, ControlConfig)
+SCHEMA: tuple[type[BaseModel], ...] = (ServiceConfig, IntrinsicsConfig, RegistrationSettings, RegistrationConfig,
+                                       GeneralConfig, ControlSettings, LawSettings, ControlConfig, SessionConfig,
+                                       RosSettings)
 UNSAFE = {"frame_timeout_s": 1e300, "max_frame_bytes": 2**62, "registration": {"max_iterations": 10**9},
           "control": {"max_linear": 1e300}}
 
@@ -73,7 +75,7 @@ def _unbounded_numbers(schema: dict[str, Any], path: str) -> list[str]:
 
 
 @pytest.mark.parametrize("model", [m for m in SCHEMA if m is not ControlConfig], ids=lambda m: m.__name__)
-def test_every_setting_has_a_description_and_a_range(model: type[Settings]) -> None:
+def test_every_setting_has_a_description_and_a_range(model: type[BaseModel]) -> None:
     """What the configuration reference is generated from: each field's description, and for every number its
     lowest and highest accepted value (`ControlConfig` adds the simulation's metric knowledge, not a setting)."""
     schema = model.model_json_schema()

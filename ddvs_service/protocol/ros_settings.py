@@ -18,10 +18,11 @@ class RosSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    domain_id: int | None = Field(default=None, ge=0, le=232)
-    namespace: str = "/"
-    node_name: str | None = None
-    topics: dict[str, str] = Field(default_factory=dict)
+    domain_id: int | None = Field(default=None, ge=0, le=232, description=(
+        "ROS 2 domain (0 to 232) of ROS 2 mode over rmw_zenoh; null: plain ddvs keys."))
+    namespace: str = Field(default="/", description="ROS namespace of the node's relative names.")
+    node_name: str | None = Field(default=None, description="The node's name instead of its default.")
+    topics: dict[str, str] = Field(default_factory=dict, description="Remapping: {ddvs key name: ROS topic name}.")
 
     @field_validator("namespace")
     @classmethod

@@ -54,14 +54,18 @@ class SessionConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    mode: Mode = "peer"
-    connect: list[str] = Field(default_factory=list)
-    listen: list[str] = Field(default_factory=list)
-    multicast_scouting: bool = False
-    shm: bool = True
-    shm_pool_mib: float = Field(default=4.0, gt=0.0)
-    zenoh_config: Path | None = None
-    overrides: dict[str, Any] = Field(default_factory=dict)
+    mode: Mode = Field(default="peer", description="Zenoh mode: peer, client (of a router) or router.")
+    connect: list[str] = Field(default_factory=list, description=(
+        "Endpoints to connect to, '<protocol>/<address>', e.g. 'tcp/127.0.0.1:7447'."))
+    listen: list[str] = Field(default_factory=list, description="Endpoints to listen on, '<protocol>/<address>'.")
+    multicast_scouting: bool = Field(default=False, description="Discover peers by multicast scouting.")
+    shm: bool = Field(default=True, description="Write large outgoing messages to shared memory (same host).")
+    shm_pool_mib: float = Field(default=4.0, gt=0.0, le=4096.0, description=(
+        "Size of this session's shared-memory pool, MiB."))
+    zenoh_config: Path | None = Field(default=None, description=(
+        "A Zenoh JSON5 configuration file (security: TLS, access control), the base the other settings change."))
+    overrides: dict[str, Any] = Field(default_factory=dict, description=(
+        "Zenoh configuration keys set last, as {'<key>/<key>': JSON value}."))
 
     @field_validator("connect", "listen")
     @classmethod
