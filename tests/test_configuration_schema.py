@@ -74,15 +74,20 @@ def _unbounded_numbers(schema: dict[str, Any], path: str) -> list[str]:
     return found
 
 
-@pytest.mark.parametrize("model", [m for m in SCHEMA if m is not ControlConfig], ids=lambda m: m.__name__)
-def test_every_setting_has_a_description_and_a_range(model: type[BaseModel]) -> None:
+def _models(schema: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The top model of a JSON schema and every model it nests (`$defs`), by name."""
+    return {schema["title"]: schema, **schema.get("$defs", {})}
+
+
+@pytest.mark.parametrize("root", [ServiceConfig, GeneralConfig], ids=lambda m: m.__name__)
+def test_every_setting_has_a_description_and_a_range(root: type[BaseModel]) -> None:
     """What the configuration reference is generated from: each field's description, and for every number its
-    lowest and highest accepted value (`ControlConfig` adds the simulation's metric knowledge, not a setting)."""
-    schema = model.model_json_schema()
-    for name, field in schema["properties"].items():
-        assert field.get("description"), f"{model.__name__}.{name} has no description"
-        if "$ref" not in field and "allOf" not in field:
-            assert not _unbounded_numbers(field, name), f"{model.__name__}.{name} has no range"
+    lowest and highest accepted value, in the service's configuration and every model it nests (and the general
+    engine's settings, which the service does not expose)."""
+    for model, schema in _models(root.model_json_schema()).items():
+        for name, field in schema["properties"].items():
+            assert field.get("description"), f"{model}.{name} has no description"
+            assert not _unbounded_numbers(field, name), f"{model}.{name} has no range"
 
 
 @pytest.mark.parametrize("patch", [{key: value} for key, value in UNSAFE.items()], ids=list(UNSAFE))
