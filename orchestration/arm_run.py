@@ -71,7 +71,9 @@ class ArmRunSettings:
     (default: loopback mesh, this interpreter); `driver_session` the `SessionConfig` fields of this process's session
     (default: a peer connecting to the sim's and the service's loopback ports); `start_servo` False: `open_arm_run`
     uploads the reference but leaves the `start` to the caller (`ArmRun.command(Command(op="start"))`);
-    `ros_domain_id` runs every node in ROS 2 mode over rmw_zenoh in that domain (docs/ros2.md; realtime clock)."""
+    `ros_domain_id` runs every node in ROS 2 mode over rmw_zenoh in that domain (docs/ros2.md; realtime clock);
+    `model` the registration's: "planar" (a poster) or "general" (eq. (2): a non-planar target such as the saddle of
+    `configs/arm/ur5_saddle.json`)."""
 
     out_dir: Path
     law: Literal["dvs", "dvs_reduced", "ddvs"] = "ddvs"
@@ -92,6 +94,7 @@ class ArmRunSettings:
     driver_session: Mapping[str, Any] | None = None
     start_servo: bool = True
     ros_domain_id: int | None = None
+    model: Literal["planar", "general"] = "planar"
 
     def __post_init__(self) -> None:
         if self.ros_domain_id is not None and self.clock != "realtime":
@@ -162,7 +165,8 @@ def service_config(settings: ArmRunSettings, listen: int, sim_port: int) -> Serv
     from ddvs_service.service.config import ControlSettings, RegistrationSettings, ServiceConfig
 
     # levels 3: the pyramid of the measured arm runs (the schema's default lets the ROI size choose, 8 at most)
-    registration = RegistrationSettings(template_size=settings.template, levels=3, global_init=True)
+    registration = RegistrationSettings(template_size=settings.template, levels=3, global_init=True,
+                                        model=settings.model)
     if settings.gain_grid is not None:
         registration = registration.replaced(gain_grid=settings.gain_grid)
     return ServiceConfig(
