@@ -1,25 +1,14 @@
-"""`sensor_msgs/msg/CompressedImage` frames: PNG (lossless) or JPEG encoding of a `sensor_msgs/msg/Image` and the
-CDR payload (`format` is "png" or "jpeg", as `image_transport`'s compressed plugin and Foxglove expect)."""
+"""`sensor_msgs/msg/CompressedImage` frames: PNG (lossless) or JPEG encoding of a `sensor_msgs/msg/Image` (`format`
+is "png" or "jpeg", as `image_transport`'s compressed plugin and Foxglove expect; the CDR codec is the protocol's,
+`ddvs_service.protocol.compressed`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ddvs_service.protocol import Header, Image
-from ddvs_service.protocol.cdr import CdrWriter
+from ddvs_service.protocol import CompressedImage, Image, encode_compressed_image
 
 FORMATS = ("png", "jpeg")
-
-
-def encode_compressed_image(header: Header, fmt: str, data: bytes) -> bytes:
-    """CDR payload of a `sensor_msgs/msg/CompressedImage` (header, format, data)."""
-    w = CdrWriter()
-    w.int32(header.stamp.sec)
-    w.uint32(header.stamp.nanosec)
-    w.string(header.frame_id)
-    w.string(fmt)
-    w.uint8_sequence(data)
-    return w.finish()
 
 
 def compress_image(image: Image, fmt: str, jpeg_quality: int = 90) -> bytes:
@@ -37,4 +26,4 @@ def compress_image(image: Image, fmt: str, jpeg_quality: int = 90) -> bytes:
     ok, data = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", np.ascontiguousarray(pixels), params)
     if not ok:
         raise ValueError(f"cannot encode a {image.encoding} {image.width}×{image.height} frame as {fmt}")
-    return encode_compressed_image(image.header, fmt, data.tobytes())
+    return encode_compressed_image(CompressedImage(image.header, fmt, data.tobytes()))

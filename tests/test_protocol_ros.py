@@ -249,8 +249,8 @@ def test_image_from_array_rejects_wrong_dtype_and_shape() -> None:
         image_from_array(np.zeros((2, 2), np.float64), "mono8")
     with pytest.raises(InconsistentMessage, match=r"\(H, W, 3\)"):
         image_from_array(np.zeros((2, 2)), "rgb8")
-    with pytest.raises(UnsupportedEncoding, match="yuv422"):
-        image_from_array(np.zeros((2, 2), np.uint8), "yuv422")
+    with pytest.raises(UnsupportedEncoding, match="nv21"):
+        image_from_array(np.zeros((2, 2), np.uint8), "nv21")
 
 
 def _image_payload(height: int, width: int, encoding: str, step: int, data: bytes, big: int = 0) -> bytes:
@@ -272,7 +272,7 @@ def _image_payload(height: int, width: int, encoding: str, step: int, data: byte
         (_image_payload(2, 3, "mono8", 3, bytes(5)), InconsistentMessage, "expected height × step"),
         (_image_payload(2, 3, "rgb8", 8, bytes(16)), InconsistentMessage, "shorter than a row"),
         (_image_payload(2, 3, "mono16", 7, bytes(14)), InconsistentMessage, "misaligned"),
-        (_image_payload(2, 3, "yuv422", 6, bytes(12)), UnsupportedEncoding, "yuv422"),
+        (_image_payload(2, 3, "nv21", 6, bytes(12)), UnsupportedEncoding, "nv21"),
         (_image_payload(2, 3, "mono8", 3, bytes(6), big=2), InconsistentMessage, "is_bigendian"),
         (_image_payload(2, 3, "mono8", 3, bytes(6))[:-1], TruncatedMessage, "data"),
         (b"\x00\x00\x00\x00" + _image_payload(1, 1, "mono8", 1, b"x")[4:], UnsupportedEncoding, "CDR_LE"),
@@ -305,14 +305,28 @@ def test_camera_info_intrinsics_round_trip() -> None:
 def test_camera_info_that_the_pinhole_model_cannot_represent_is_refused() -> None:
     header = Header(Time(0, 0), "c")
     k = Intrinsics.centred(500.0, 64, 48).K.reshape(-1)
-    with pytest.raises(InconsistentMessage, match="distorted"):
-        CameraInfo(header, 48, 64, d=[0.1, 0, 0, 0, 0], k=k).to_intrinsics()
+    with pytest.raises(InconsistentMessage, match="monocular"):
+        CameraInfo(header, 48, 64, k=k, p=[500, 0, 31.5, -25, 0, 500, 23.5, 0, 0, 0, 1, 0]).rectified_intrinsics()
     with pytest.raises(InconsistentMessage, match="binning"):
         CameraInfo(header, 48, 64, k=k, binning_x=2).to_intrinsics()
     with pytest.raises(InconsistentMessage, match="roi"):
         CameraInfo(header, 48, 64, k=k, roi=RegionOfInterest(0, 0, 10, 10)).to_intrinsics()
     with pytest.raises(InconsistentMessage, match="k has 8 values"):
         CameraInfo(header, 48, 64, k=k[:8])
+
+
+def test_camera_info_intrinsics_of_raw_and_rectified_images() -> None:
+    """As in ROS: `k` is the raw image's camera, the first 3×3 of `p` the rectified image's (`k` when `p` is unset),
+    whatever the distortion coefficients."""
+    header = Header(Time(0, 0), "c")
+    k = Intrinsics(500.0, 502.0, 31.0, 24.0, 64, 48).K
+    p = np.hstack([Intrinsics(420.0, 421.0, 32.5, 22.0, 64, 48).K, np.zeros((3, 1))])
+    info = CameraInfo(header, 48, 64, d=[-0.3, 0.1, 0.001, -0.002, 0.0], k=k.reshape(-1), p=p.reshape(-1))
+    assert info.distorted
+    assert info.to_intrinsics() == Intrinsics(500.0, 502.0, 31.0, 24.0, 64, 48)
+    assert info.rectified_intrinsics() == Intrinsics(420.0, 421.0, 32.5, 22.0, 64, 48)
+    unset = CameraInfo(header, 48, 64, d=[-0.3, 0.1, 0, 0, 0], k=k.reshape(-1), p=np.zeros(12))
+    assert unset.rectified_intrinsics() == unset.to_intrinsics()
 
 
 def test_time_conversions() -> None:

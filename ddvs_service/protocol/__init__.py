@@ -4,6 +4,11 @@ See `docs/protocol.md` for the key table, encodings and schemas. Importing this 
 zenoh); OpenCV is imported only when a PNG upload is encoded or decoded.
 """
 
+from ddvs_service.protocol.compressed import (
+    CompressedImage,
+    decode_compressed_image,
+    encode_compressed_image,
+)
 from ddvs_service.protocol.control import (
     COMMAND_OPS,
     PROTOCOL_VERSION,
@@ -68,6 +73,7 @@ __all__ = [
     "TOPICS",
     "CameraInfo",
     "Command",
+    "CompressedImage",
     "Counters",
     "GroundTruth",
     "Header",
@@ -97,12 +103,14 @@ __all__ = [
     "add_zenoh_arguments",
     "declare_publisher",
     "decode_camera_info",
+    "decode_compressed_image",
     "decode_image",
     "decode_joint_state",
     "decode_twist_stamped",
     "decode_upload",
     "dump",
     "encode_camera_info",
+    "encode_compressed_image",
     "encode_image",
     "encode_joint_state",
     "encode_twist_stamped",

@@ -43,6 +43,23 @@ TOPICS: dict[str, TopicSpec] = {
         "camera, sim", "serve, monitor, record", "DATA_HIGH", "DROP", False, "latest only (RingChannel(1))",
         "image_raw", SENSOR_DATA_QOS,
     ),
+    "camera_image_rect": TopicSpec(
+        "camera/image_rect", "sensor_msgs/msg/Image (CDR), rectified: intrinsics from the camera info's P",
+        "sensor_msgs/msg/Image", "camera (--publish rect), image_proc", "serve (camera.images rect), monitor, record",
+        "DATA_HIGH", "DROP", False, "latest only (RingChannel(1))", "image_rect", SENSOR_DATA_QOS,
+    ),
+    "camera_image_compressed": TopicSpec(
+        "camera/image/compressed", "sensor_msgs/msg/CompressedImage (CDR), JPEG or PNG of camera/image",
+        "sensor_msgs/msg/CompressedImage", "camera (--compress), image_transport",
+        "serve (camera.transport compressed), monitor, record", "DATA_HIGH", "DROP", False,
+        "latest only (RingChannel(1))", "image_raw/compressed", SENSOR_DATA_QOS,
+    ),
+    "camera_image_rect_compressed": TopicSpec(
+        "camera/image_rect/compressed", "sensor_msgs/msg/CompressedImage (CDR), JPEG or PNG of camera/image_rect",
+        "sensor_msgs/msg/CompressedImage", "camera (--publish rect --compress), image_transport",
+        "serve (camera.images rect, camera.transport compressed), monitor, record", "DATA_HIGH", "DROP", False,
+        "latest only (RingChannel(1))", "image_rect/compressed", SENSOR_DATA_QOS,
+    ),
     "camera_info": TopicSpec(
         "camera/info", "sensor_msgs/msg/CameraInfo (CDR)", "sensor_msgs/msg/CameraInfo",
         "camera, sim (with every image)", "serve, monitor, record", "DATA", "DROP", False, "latest only",

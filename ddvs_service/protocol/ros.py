@@ -97,8 +97,19 @@ ENCODINGS: dict[str, PixelFormat] = {
     "mono16": PixelFormat(np.dtype("<u2"), 1),
     "16UC1": PixelFormat(np.dtype("<u2"), 1),
     "32FC1": PixelFormat(np.dtype("<f4"), 1),
+    "rgb16": PixelFormat(np.dtype("<u2"), 3),
+    "bgr16": PixelFormat(np.dtype("<u2"), 3),
+    "rgba16": PixelFormat(np.dtype("<u2"), 4),
+    "bgra16": PixelFormat(np.dtype("<u2"), 4),
+    # 4:2:2 YUV, two bytes a pixel: `yuv422` and `uyvy` are U Y0 V Y1, `yuv422_yuy2` and `yuyv` are Y0 U Y1 V
+    "yuv422": PixelFormat(np.dtype("u1"), 2),
+    "uyvy": PixelFormat(np.dtype("u1"), 2),
+    "yuv422_yuy2": PixelFormat(np.dtype("u1"), 2),
+    "yuyv": PixelFormat(np.dtype("u1"), 2),
+    **{f"bayer_{pattern}{bits}": PixelFormat(np.dtype("u1" if bits == 8 else "<u2"), 1)
+       for pattern in ("rggb", "bggr", "gbrg", "grbg") for bits in (8, 16)},
 }
-"""Supported `sensor_msgs/image_encodings` names."""
+"""Supported `sensor_msgs/image_encodings` names (`ddvs_service.grey` turns each into grey levels)."""
 
 
 def pixel_format(encoding: str) -> PixelFormat:
@@ -201,7 +212,10 @@ class CameraInfo:
     """`sensor_msgs/CameraInfo`: calibration of the camera that took the images (pixels, OpenCV conventions).
 
     `k` (3×3), `r` (3×3) and `p` (3×4) are row-major flat arrays; `d` the distortion coefficients of
-    `distortion_model` ("plumb_bob": k1, k2, t1, t2, k3). Pixel centres at integer coordinates, as in the project.
+    `distortion_model` ("plumb_bob": k1, k2, t1, t2, k3; "rational_polynomial": k1, k2, t1, t2, k3, k4, k5, k6;
+    "equidistant": k1, k2, k3, k4). As in ROS, `k` and `d` describe the raw (distorted) image and the first 3×3 of
+    `p` the rectified one, so one camera info serves both `image_raw` and `image_rect`. Pixel centres at integer
+    coordinates, as in the project.
     """
 
     header: Header
@@ -238,14 +252,29 @@ class CameraInfo:
             p=np.hstack([K, np.zeros((3, 1))]).reshape(-1),
         )
 
+    @property
+    def distorted(self) -> bool:
+        """True when `d` has a non-zero coefficient (the raw image differs from a pinhole image)."""
+        return bool(np.any(self.d != 0.0))
+
     def to_intrinsics(self) -> Intrinsics:
-        """The pinhole `Intrinsics` of `k`. Raises `InconsistentMessage` for what the engine cannot model:
-        non-zero distortion, binning > 1, or a region of interest smaller than the image."""
-        if np.any(self.d != 0.0):
-            raise InconsistentMessage(
-                f"CameraInfo.d = {self.d.tolist()}: distorted images are not supported; expected rectified images "
-                "(all coefficients 0)"
-            )
+        """The pinhole `Intrinsics` of the raw image, from `k` (distortion aside). Raises `InconsistentMessage` for
+        what the engine cannot model: binning > 1, a region of interest smaller than the image, a malformed K."""
+        return self._pinhole("k", self.k.reshape(3, 3))
+
+    def rectified_intrinsics(self) -> Intrinsics:
+        """The pinhole `Intrinsics` of the rectified image (`image_rect`): the first 3×3 of `p`, or `k` when `p` is
+        all zeros (a driver without calibration leaves it so). Same checks as `to_intrinsics`; a monocular P has
+        no translation column (P[:, 3] = 0)."""
+        P = self.p.reshape(3, 4)
+        if not np.any(P):
+            return self.to_intrinsics()
+        if np.any(P[:, 3] != 0.0):
+            raise InconsistentMessage(f"CameraInfo.p = {self.p.tolist()}: expected a monocular projection matrix "
+                                      "(last column 0); a stereo pair's right camera is not supported")
+        return self._pinhole("p", P[:, :3])
+
+    def _pinhole(self, what: str, K: NDArray[np.float64]) -> Intrinsics:
         if self.binning_x > 1 or self.binning_y > 1:
             raise InconsistentMessage(f"CameraInfo binning {self.binning_x}×{self.binning_y}: expected 0 or 1")
         roi = self.roi
@@ -256,13 +285,14 @@ class CameraInfo:
             self.height,
         ):
             raise InconsistentMessage(f"CameraInfo.roi = {roi}: expected the full image (or all zeros)")
-        k = [float(v) for v in self.k]
+        k = [float(v) for v in K.reshape(-1)]
         if k[3] != 0.0 or k[6:] != [0.0, 0.0, 1.0]:
-            raise InconsistentMessage(f"CameraInfo.k = {k}: expected an upper-triangular K with K[2,2] = 1")
+            raise InconsistentMessage(f"CameraInfo.{what} = {k}: expected an upper-triangular 3×3 block with "
+                                      "[2,2] = 1")
         try:
             return Intrinsics(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=self.width, height=self.height, skew=k[1])
         except ValueError as exc:
-            raise InconsistentMessage(f"CameraInfo.k does not describe a pinhole camera: {exc}") from exc
+            raise InconsistentMessage(f"CameraInfo.{what} does not describe a pinhole camera: {exc}") from exc
 
 
 @dataclass(eq=False)
@@ -315,13 +345,15 @@ class JointState:
 # --- codecs --------------------------------------------------------------------------------------------------------
 
 
-def _write_header(w: CdrWriter, header: Header) -> None:
+def write_header(w: CdrWriter, header: Header) -> None:
+    """A `std_msgs/Header` into `w` (the leading field of every stamped message)."""
     w.int32(header.stamp.sec)
     w.uint32(header.stamp.nanosec)
     w.string(header.frame_id)
 
 
-def _read_header(r: CdrReader) -> Header:
+def read_header(r: CdrReader) -> Header:
+    """A `std_msgs/Header` from `r`."""
     sec = r.int32("header.stamp.sec")
     nanosec = r.uint32("header.stamp.nanosec")
     return Header(Time(sec, nanosec), r.string("header.frame_id"))
@@ -330,7 +362,7 @@ def _read_header(r: CdrReader) -> Header:
 def encode_image(msg: Image) -> bytes:
     """CDR payload of a `sensor_msgs/Image` (the pixel bytes are copied once, into the result)."""
     w = CdrWriter()
-    _write_header(w, msg.header)
+    write_header(w, msg.header)
     w.uint32(msg.height)
     w.uint32(msg.width)
     w.string(msg.encoding)
@@ -343,7 +375,7 @@ def encode_image(msg: Image) -> bytes:
 def decode_image(buf: bytes | bytearray | memoryview, max_bytes: int = IMAGE_MAX_BYTES) -> Image:
     """Decode a `sensor_msgs/Image` payload; `data` is a view into `buf` (keep `buf` alive, it is not copied)."""
     r = CdrReader(buf, max_bytes)
-    header = _read_header(r)
+    header = read_header(r)
     height = r.uint32("height")
     width = r.uint32("width")
     encoding = r.string("encoding")
@@ -383,7 +415,7 @@ def image_from_array(array: NDArray, encoding: str, header: Header | None = None
 def encode_camera_info(msg: CameraInfo) -> bytes:
     """CDR payload of a `sensor_msgs/CameraInfo`."""
     w = CdrWriter()
-    _write_header(w, msg.header)
+    write_header(w, msg.header)
     w.uint32(msg.height)
     w.uint32(msg.width)
     w.string(msg.distortion_model)
@@ -403,7 +435,7 @@ def encode_camera_info(msg: CameraInfo) -> bytes:
 
 def decode_camera_info(buf: bytes | bytearray | memoryview, max_bytes: int = MESSAGE_MAX_BYTES) -> CameraInfo:
     r = CdrReader(buf, max_bytes)
-    header = _read_header(r)
+    header = read_header(r)
     height = r.uint32("height")
     width = r.uint32("width")
     model = r.string("distortion_model")
@@ -426,14 +458,14 @@ def decode_camera_info(buf: bytes | bytearray | memoryview, max_bytes: int = MES
 def encode_twist_stamped(msg: TwistStamped) -> bytes:
     """CDR payload of a `geometry_msgs/TwistStamped`."""
     w = CdrWriter()
-    _write_header(w, msg.header)
+    write_header(w, msg.header)
     w.float64_array(np.concatenate((msg.linear, msg.angular)), length=6)  # linear then angular, one aligned block
     return w.finish()
 
 
 def decode_twist_stamped(buf: bytes | bytearray | memoryview, max_bytes: int = MESSAGE_MAX_BYTES) -> TwistStamped:
     r = CdrReader(buf, max_bytes)
-    header = _read_header(r)
+    header = read_header(r)
     linear = [r.float64(f"twist.linear.{c}") for c in "xyz"]
     angular = [r.float64(f"twist.angular.{c}") for c in "xyz"]
     return TwistStamped(header, np.array(linear), np.array(angular))
@@ -442,7 +474,7 @@ def decode_twist_stamped(buf: bytes | bytearray | memoryview, max_bytes: int = M
 def encode_joint_state(msg: JointState) -> bytes:
     """CDR payload of a `sensor_msgs/JointState`."""
     w = CdrWriter()
-    _write_header(w, msg.header)
+    write_header(w, msg.header)
     w.string_sequence(msg.name)
     w.float64_array(msg.position)
     w.float64_array(msg.velocity)
@@ -452,7 +484,7 @@ def encode_joint_state(msg: JointState) -> bytes:
 
 def decode_joint_state(buf: bytes | bytearray | memoryview, max_bytes: int = MESSAGE_MAX_BYTES) -> JointState:
     r = CdrReader(buf, max_bytes)
-    header = _read_header(r)
+    header = read_header(r)
     name = r.string_sequence("name")
     position = r.float64_array("position")
     velocity = r.float64_array("velocity")
