@@ -1,18 +1,21 @@
-"""`ddvs camera`: publish frames from a webcam or a video file (OpenCV `VideoCapture`) with their camera info.
+"""`ddvs camera`: publish frames from a webcam or a video file (OpenCV `VideoCapture`) with their camera info, as a
+ROS camera driver (`--publish raw`) or a driver followed by image_proc (`--publish rect`) does (docs/cameras.md).
 
-Keys: `camera/image` (`sensor_msgs/Image`, mono8 or bgr8) and `camera/info` (`sensor_msgs/CameraInfo`, with every
-frame), both stamped with the wall-clock time at which the frame was read (ns since the Unix epoch); in ROS 2 mode
-(`--ros-domain-id`, docs/ros2.md) the ROS topics `image_raw` and `camera_info`, as a ROS camera driver publishes.
+Keys: with `--publish raw` (default) `camera/image` (ROS `image_raw`): the frames as read; with `--publish rect`
+`camera/image_rect` (ROS `image_rect`): the frames rectified to the calibration's P (`ddvs_service.rectification`,
+the maps the service would use). `--compress jpeg|png` publishes `sensor_msgs/CompressedImage` on the image
+topic's `/compressed` row instead (image_transport's name). Either way `camera/info` (ROS `camera_info`) carries the
+calibration with every frame, K and d of the raw image, R and P, as camera_info_manager publishes it; everything is
+stamped with the wall-clock time at which the frame was read (ns since the Unix epoch). Encodings mono8 or bgr8.
 
-Calibration (`--calibration FILE`): an OpenCV FileStorage file (YAML/XML/JSON, e.g. written by
-`cv2.FileStorage` or the ROS `camera_calibration` YAML) or a plain JSON object, with the 3×3 camera matrix under
-`camera_matrix` or `K`, distortion coefficients under `distortion_coefficients`, `dist_coeffs` or `D` (optional) and
-the size under `image_width`/`image_height` or `width`/`height`. Matrices may be `opencv-matrix` nodes, `{rows,
-cols, data}` maps or (nested) lists. Pixels follow OpenCV (0-based pixel centres). Without a calibration file,
-`--focal F` describes the paper's coarse calibration: fx = fy = F, principal point at the image centre.
-
-The servo engine models undistorted pinhole images, so frames with non-zero distortion are rectified with the same
-K (`cv2.initUndistortRectifyMap`) and published with zero distortion, unless `--raw` is given.
+Calibration (`--calibration FILE`): the YAML that ROS's `camera_calibration` writes and `camera_info_manager` reads
+(`image_width`, `image_height`, `camera_name`, `camera_matrix`, `distortion_model`, `distortion_coefficients`,
+`rectification_matrix`, `projection_matrix`, matrices as `{rows, cols, data}`), any OpenCV FileStorage file
+(YAML/XML/JSON) or a plain JSON object with the same keys; also accepted: `K` for the camera matrix,
+`dist_coeffs` or `D` for the coefficients, `width`/`height` for the size. Without a model the coefficients are
+plumb_bob; without R, the identity; without P, [K | 0]. Pixels follow OpenCV (0-based pixel centres). Without a
+calibration file, `--focal F` describes the paper's coarse calibration: fx = fy = F, principal point at the image
+centre, no distortion.
 
 Rate: a video file is replayed at `--fps`, or at the rate stored in the file (30 Hz when it has none); a device is
 read as fast as it delivers frames, or throttled to `--fps`.
@@ -25,7 +28,7 @@ import json
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,32 +38,49 @@ from numpy.typing import NDArray
 if TYPE_CHECKING:
     import zenoh
 
-    from ddvs_service.protocol import Keys
+    from ddvs_service.protocol import CameraInfo, Header, Keys
 
 log = logging.getLogger(__name__)
 ENCODINGS = ("mono8", "bgr8")
+PUBLISH = ("raw", "rect")
 CAMERA_FRAME_ID = "camera"
 DEFAULT_FILE_FPS = 30.0
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """Camera matrix `K` (3×3, pixels), distortion coefficients `D` (OpenCV order k1 k2 p1 p2 [k3 …]), image size."""
+    """Camera matrix `K` (3×3, pixels), distortion coefficients `D` of `model` (plumb_bob: k1 k2 p1 p2 [k3];
+    rational_polynomial: 8; equidistant: k1 k2 k3 k4), image size, rectification `R` (3×3) and projection `P`
+    (3×4, pixels: the rectified image's camera), as in `sensor_msgs/CameraInfo`."""
 
     K: NDArray[np.float64]
     D: NDArray[np.float64]
     width: int
     height: int
+    model: str = "plumb_bob"
+    R: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
+    P: NDArray[np.float64] | None = None  # None: [K | 0]
 
     def __post_init__(self) -> None:
         if self.K.shape != (3, 3) or self.K[2, 2] != 1.0 or self.K[1, 0] != 0.0 or self.K[2, 0] != 0.0:
             raise ValueError(f"camera matrix must be 3×3 upper triangular with K[2,2] = 1, got {self.K.tolist()}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}×{self.height}")
+        if self.R.shape != (3, 3) or (self.P is not None and self.P.shape != (3, 4)):
+            raise ValueError(f"rectification matrix must be 3×3 and projection matrix 3×4, got {self.R.shape} and "
+                             f"{None if self.P is None else self.P.shape}")
 
     @property
     def distorted(self) -> bool:
         return bool(np.any(self.D != 0.0))
+
+    def camera_info(self, header: Header) -> CameraInfo:
+        """The `sensor_msgs/CameraInfo` of this calibration (what camera_info_manager publishes from the file)."""
+        from ddvs_service.protocol import CameraInfo
+
+        P = np.hstack([self.K, np.zeros((3, 1))]) if self.P is None else self.P
+        return CameraInfo(header=header, height=self.height, width=self.width, distortion_model=self.model,
+                          d=self.D, k=self.K.reshape(-1), r=self.R.reshape(-1), p=P.reshape(-1))
 
 
 def _first(mapping: dict, names: tuple[str, ...], path: Path, required: bool = True):
@@ -125,27 +145,37 @@ def load_calibration(path: str | Path) -> Calibration:
     D = np.zeros(5) if D_value is None else _as_matrix(D_value, "distortion", path).reshape(-1)
     width = int(_first(entries, ("image_width", "width"), path))
     height = int(_first(entries, ("image_height", "height"), path))
-    return Calibration(K, D, width, height)
+    model = str(_first(entries, ("distortion_model",), path, required=False) or "plumb_bob")
+    R_value = _first(entries, ("rectification_matrix", "R"), path, required=False)
+    R = np.eye(3) if R_value is None else _as_matrix(R_value, "rectification matrix", path).reshape(3, 3)
+    P_value = _first(entries, ("projection_matrix", "P"), path, required=False)
+    P = None if P_value is None else _as_matrix(P_value, "projection matrix", path).reshape(3, 4)
+    return Calibration(K, D, width, height, model, R, P)
 
 
 class CameraPublisher:
-    """Publishes frames (grey or BGR uint8, the calibration's size) with their camera info on `session`."""
+    """Publishes frames (grey or BGR uint8, the calibration's size) with their camera info on `session`: raw
+    (`publish` "raw") or rectified to the calibration's P (`publish` "rect"), as `sensor_msgs/Image` or, with
+    `compress` "jpeg"/"png", as `sensor_msgs/CompressedImage`."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, calibration: Calibration, encoding: str = "mono8",
-                 rectify: bool = True, frame_id: str = CAMERA_FRAME_ID) -> None:
-        import cv2
-
+                 publish: str = "raw", frame_id: str = CAMERA_FRAME_ID, compress: str | None = None,
+                 jpeg_quality: int = 90) -> None:
+        from ddvs_service.protocol import Header, Time
         from ddvs_service.protocol.endpoints import Endpoints
+        from ddvs_service.rectification import camera_geometry
 
         if encoding not in ENCODINGS:
             raise ValueError(f"encoding {encoding!r} not supported; expected one of {ENCODINGS}")
+        if publish not in PUBLISH:
+            raise ValueError(f"publish {publish!r}: expected one of {PUBLISH}")
         self.calibration, self.encoding, self.frame_id = calibration, encoding, frame_id
-        size = (calibration.width, calibration.height)
-        self._maps = (cv2.initUndistortRectifyMap(calibration.K, calibration.D, None, calibration.K, size,
-                                                  cv2.CV_16SC2) if rectify and calibration.distorted else None)
-        self._published_D = np.zeros(5) if self._maps is not None else calibration.D
+        self.compress, self.jpeg_quality = compress, jpeg_quality
+        info = calibration.camera_info(Header(Time(0, 0), frame_id))
+        self._rectifier = camera_geometry(info, rectified=False).rectifier if publish == "rect" else None
+        row = "camera_image" if publish == "raw" else "camera_image_rect"
         self._endpoints = Endpoints(session, keys, "ddvs_camera")  # graph tokens and attachments in ROS 2 mode
-        self._image = self._endpoints.publisher("camera_image")
+        self._image = self._endpoints.publisher(row if compress is None else f"{row}_compressed")
         self._info = self._endpoints.publisher("camera_info")
         self.published = 0
 
@@ -156,14 +186,8 @@ class CameraPublisher:
         """Convert (grey/BGR), rectify when needed, and publish `frame` with camera info stamped `stamp_ns`."""
         import cv2
 
-        from ddvs_service.protocol import (
-            CameraInfo,
-            Header,
-            Time,
-            encode_camera_info,
-            encode_image,
-            image_from_array,
-        )
+        from clients.compressed_image import compress_image
+        from ddvs_service.protocol import Header, Time, encode_camera_info, encode_image, image_from_array
 
         cal = self.calibration
         if frame.shape[:2] != (cal.height, cal.width):
@@ -173,13 +197,13 @@ class CameraPublisher:
             frame = np.asarray(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), np.uint8)
         elif self.encoding == "bgr8" and frame.ndim == 2:
             frame = np.asarray(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), np.uint8)
-        if self._maps is not None:
-            frame = np.asarray(cv2.remap(frame, self._maps[0], self._maps[1], cv2.INTER_LINEAR), np.uint8)
+        if self._rectifier is not None:
+            frame = self._rectifier(frame)
         header = Header(Time.from_ns(stamp_ns), self.frame_id)
-        info = CameraInfo(header=header, height=cal.height, width=cal.width, d=self._published_D,
-                          k=cal.K.reshape(-1), p=np.hstack([cal.K, np.zeros((3, 1))]).reshape(-1))
-        self._info.put(encode_camera_info(info))
-        self._image.put(encode_image(image_from_array(np.ascontiguousarray(frame), self.encoding, header)))
+        self._info.put(encode_camera_info(cal.camera_info(header)))
+        image = image_from_array(np.ascontiguousarray(frame), self.encoding, header)
+        self._image.put(encode_image(image) if self.compress is None else
+                        compress_image(image, self.compress, self.jpeg_quality))
         self.published += 1
 
 
@@ -220,7 +244,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              help="coarse calibration: fx = fy = FOCAL px, principal point at the image centre")
     parser.add_argument("--fps", type=float, default=None, help="publishing rate (default: the source's)")
     parser.add_argument("--encoding", choices=ENCODINGS, default="mono8", help="published encoding (default mono8)")
-    parser.add_argument("--raw", action="store_true", help="publish distorted frames as read (no rectification)")
+    parser.add_argument("--publish", choices=PUBLISH, default="raw",
+                        help="raw: frames as read on camera/image (ROS image_raw), the service rectifies them; rect: "
+                             "rectified to the calibration's P on camera/image_rect (ROS image_rect) (default raw)")
+    parser.add_argument("--compress", choices=("jpeg", "png"), default=None,
+                        help="publish sensor_msgs/CompressedImage on the image topic's /compressed instead")
+    parser.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality 1-100 with --compress jpeg")
     parser.add_argument("--frame-id", default=CAMERA_FRAME_ID,
                         help="header.frame_id: the camera's optical frame in the robot's TF tree, which the servo's "
                              f"twist is expressed in (MoveIt Servo needs it there; default {CAMERA_FRAME_ID!r})")
@@ -266,8 +295,8 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config_from_args(args)) as session:
         keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
-        publisher = CameraPublisher(session, keys, calibration, args.encoding, rectify=not args.raw,
-                                    frame_id=args.frame_id)
+        publisher = CameraPublisher(session, keys, calibration, args.encoding, args.publish, args.frame_id,
+                                    args.compress, args.jpeg_quality)
         try:
             count = stream(capture, publisher, fps, stop, args.frames, args.loop)
         finally:
