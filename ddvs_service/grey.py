@@ -3,9 +3,9 @@ and PNG files of a `sensor_msgs/CompressedImage`, converted with OpenCV.
 
 Grey levels are in [0, 255] (the engine's convention, docs/ARCHITECTURE.md): 8-bit frames give uint8 (colour by
 ITU-R BT.601 luma, `cv2.cvtColor`; 4:2:2 YUV by its Y samples; Bayer mosaics demosaiced to grey), 16-bit frames
-float32 scaled by 255/65535, `32FC1` its own values. The pixels of a compressed frame are counted from the file's
-header before they are decoded (`protocol.compressed.compressed_geometry`), against the same byte limit as a raw
-frame's payload.
+float32 scaled by 255/65535, `32FC1` its own values. The decoded size of a compressed frame is read from the file's
+header and bounded before anything is decoded (`protocol.image_size`), by the same byte limit as a raw frame's
+payload.
 """
 
 from __future__ import annotations
@@ -15,9 +15,10 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
-from ddvs_service.protocol.compressed import CompressedImage, compressed_geometry
-from ddvs_service.protocol.errors import InconsistentMessage, MessageTooLarge, UnsupportedEncoding
-from ddvs_service.protocol.ros import ENCODINGS, Image
+from ddvs_service.protocol.compressed import CompressedImage, decode_compressed_image
+from ddvs_service.protocol.errors import InconsistentMessage
+from ddvs_service.protocol.image_size import check_decoded_size, jpeg_header, png_header
+from ddvs_service.protocol.ros import ENCODINGS, Header, Image, decode_image
 
 _SCALE_16 = np.float32(255.0 / 65535.0)
 
@@ -62,23 +63,28 @@ def grey_image(image: Image) -> NDArray:
 
 
 def decode_compressed(msg: CompressedImage, max_bytes: int) -> NDArray:
-    """Grey levels (H, W) of a JPEG or PNG frame: uint8, or float32 for a 16-bit PNG. The decoded size is checked
-    against `max_bytes` from the file's header before decoding (`MessageTooLarge`); a file OpenCV cannot decode
-    raises `InconsistentMessage`, an unknown format `UnsupportedEncoding`."""
+    """Grey levels (H, W) of a JPEG or PNG frame: uint8, or float32 for a 16-bit PNG. The decoded size its header
+    declares is checked against `max_bytes` before decoding (`MessageTooLarge`); a file OpenCV cannot decode raises
+    `InconsistentMessage`, an unknown format `UnsupportedEncoding`."""
     import cv2
 
     codec = msg.codec
-    geometry = compressed_geometry(msg.data, codec)
-    if geometry.decoded_bytes > max_bytes:
-        raise MessageTooLarge(f"compressed {codec} frame of {geometry.width}×{geometry.height} pixels, "
-                              f"{geometry.channels} channels of {geometry.bits} bits, decodes to "
-                              f"{geometry.decoded_bytes} bytes; the maximum is {max_bytes}")
-    if geometry.bits not in (8, 16):
-        raise UnsupportedEncoding(f"compressed {codec} frame with {geometry.bits}-bit samples; expected 8 or 16")
+    header = png_header(msg.data) if codec == "png" else jpeg_header(msg.data)
+    check_decoded_size(header, max_bytes, f"compressed {codec} frame")
     pixels = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
-    if pixels is None or pixels.shape != (geometry.height, geometry.width):
+    if pixels is None or pixels.shape != (header.height, header.width):
         raise InconsistentMessage(f"compressed {codec} frame ({len(msg.data)} bytes) does not decode to the "
-                                  f"{geometry.width}×{geometry.height} image its header announces")
+                                  f"{header.width}×{header.height} image its header declares")
     if pixels.dtype == np.uint16:
         return pixels.astype(np.float32) * _SCALE_16
     return np.asarray(pixels)
+
+
+def decode_frame(payload: bytes | memoryview, compressed: bool, max_bytes: int) -> tuple[Header, NDArray]:
+    """Header and grey levels (H, W) of one camera frame's CDR payload: a `sensor_msgs/Image`, or a
+    `sensor_msgs/CompressedImage` when `compressed`. Raises `ProtocolError` subclasses naming what is wrong."""
+    if compressed:
+        msg = decode_compressed_image(payload, max_bytes)
+        return msg.header, decode_compressed(msg, max_bytes)
+    image = decode_image(payload, max_bytes)
+    return image.header, grey_image(image)

@@ -30,7 +30,7 @@ from ddvs_service.protocol import (
     decode_image,
     encode_compressed_image,
 )
-from ddvs_service.protocol.compressed import compressed_geometry
+from ddvs_service.protocol.image_size import jpeg_header, png_header
 from ddvs_service.rectification import camera_geometry
 
 H, W = 120, 160
@@ -163,8 +163,8 @@ def test_rclpy_compressed_images_decode_jpeg_and_png_as_image_transport_names_th
 
 
 def test_a_png_decode_bomb_is_refused_from_its_header_before_decoding() -> None:
-    """A 4096×4096 16-bit RGBA PNG of a few hundred KB: its header announces 128 MiB of pixels, over the limit, and
-    it is refused before OpenCV allocates them; its geometry is read from the header alone."""
+    """A 4096×4096 16-bit RGBA PNG of a few hundred KB: its header declares 128 MiB of pixels, over the limit, and
+    it is refused before OpenCV allocates them. A JPEG's size is read from its start-of-frame segment."""
     row = b"\x00" + bytes(4096 * 8)
     idat = zlib.compress(row * 4096, 9)
 
@@ -174,12 +174,13 @@ def test_a_png_decode_bomb_is_refused_from_its_header_before_decoding() -> None:
     png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 4096, 4096, 16, 6, 0, 0, 0))
            + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
     assert len(png) < 1 << 20
-    geometry = compressed_geometry(png, "png")
-    assert (geometry.width, geometry.height, geometry.channels, geometry.bits) == (4096, 4096, 4, 16)
-    with pytest.raises(MessageTooLarge, match="4096×4096 pixels, 4 channels of 16 bits, decodes to 134217728"):
+    header = png_header(png)
+    assert (header.width, header.height, header.channels, header.bytes_per_sample) == (4096, 4096, 4, 2)
+    with pytest.raises(MessageTooLarge, match="4096×4096 pixels × 4 channels × 2 bytes = 134217728 bytes decoded"):
         decode_compressed(CompressedImage(Header(Time(0, 0), ""), "png", png), IMAGE_MAX_BYTES)
-    jpeg = cv2.imencode(".jpg", np.zeros((48, 64), np.uint8))[1].tobytes()
-    assert compressed_geometry(jpeg, "jpeg")[:3] == (64, 48, 1)
+    jpeg = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
+    header = jpeg_header(jpeg)
+    assert (header.width, header.height, header.channels, header.bytes_per_sample) == (64, 48, 3, 1)
 
 
 # --- rectification of raw frames -----------------------------------------------------------------------------------

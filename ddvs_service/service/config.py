@@ -52,6 +52,27 @@ class IntrinsicsConfig(Settings):
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
 
+class CameraSettings(Settings):
+    """Which of the camera's image topics the service reads (docs/cameras.md). `images`: `raw` (`camera/image`,
+    ROS `image_raw`: frames as the sensor took them, rectified by the service with the camera info's distortion,
+    `ddvs_service.rectification`) or `rect` (`camera/image_rect`, ROS `image_rect`: frames rectified upstream, e.g.
+    by image_proc; intrinsics from the camera info's P). `transport`: `raw` (`sensor_msgs/Image`) or `compressed`
+    (`sensor_msgs/CompressedImage`, JPEG or PNG, on `<image topic>/compressed` as image_transport names it)."""
+
+    images: Literal["raw", "rect"] = Field(default="raw", description=(
+        "raw: camera/image (ROS image_raw), rectified by the service when the camera info has distortion; rect: "
+        "camera/image_rect (ROS image_rect), already rectified, intrinsics from the camera info's P."))
+    transport: Literal["raw", "compressed"] = Field(default="raw", description=(
+        "raw: sensor_msgs/Image; compressed: sensor_msgs/CompressedImage (JPEG or PNG) on the image topic's "
+        "/compressed."))
+
+    @property
+    def topic(self) -> str:
+        """The row of `protocol.keys.TOPICS` these frames arrive on."""
+        row = "camera_image" if self.images == "raw" else "camera_image_rect"
+        return row if self.transport == "raw" else f"{row}_compressed"
+
+
 class RegistrationSettings(RegistrationConfig):
     """The registration: every engine setting of `RegistrationConfig` (`levels` … `defocus_px`, the same
     definitions and defaults), the model (planar, `ρ* ≡ 0`, or general, eq. (2): `G`, `e`, `ρ*`, sampled as
@@ -129,6 +150,8 @@ class ServiceConfig(Settings):
                              description="ROS 2 mode over rmw_zenoh (docs/ros2.md).")
     state_dir: Path = Field(default=Path("state"), json_schema_extra=START_ONLY,
                             description="Folder of the robot's persisted state (reference, estimate, changes).")
+    camera: CameraSettings = Field(default_factory=CameraSettings, json_schema_extra=START_ONLY,
+                                   description="The camera topic the service reads: raw or rectified, compressed or not.")
     intrinsics: IntrinsicsConfig | None = Field(default=None, json_schema_extra=START_ONLY, description=(
         "The camera's intrinsics; null: those of the camera's camera/info."))
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings,

@@ -8,7 +8,10 @@ no frame *arrived* within `frame_timeout_s` (a slow frame while frames keep arri
 `close(reason)` publishes a zero twist and undeclares everything. Zenoh callbacks only hand samples to the robot's
 `Inbox` and wake the loop.
 
-Per frame: decode (a numpy view of the payload) → register → control → publish `servo/twist` (stamped with the
+Per frame: decode (grey levels of any supported encoding, a view of the payload for mono8; JPEG/PNG with
+`camera.transport` compressed: `ddvs_service.grey`) → rectify (raw frames of a camera whose info has distortion,
+maps computed once per camera info: `ddvs_service.rectification`; `camera.images` says whether frames are raw or
+rectified) → register → control → publish `servo/twist` (stamped with the
 frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the robot keeps running, and
 so do the other robots of the process. Never stale: the twist of frame k is withheld (and counted `stale`) when
 frames k+1 and k+2 arrived before it could go out — a newer frame's twist is about to follow. Frames in IDLE (no
@@ -31,11 +34,13 @@ import zenoh
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
+from ddvs_service.grey import decode_frame
 from ddvs_service.logs import fields
 from ddvs_service.protocol import (
     Command,
     Counters,
     Header,
+    Image,
     InvalidMessage,
     Keys,
     Latency,
@@ -47,7 +52,6 @@ from ddvs_service.protocol import (
     Time,
     TwistStamped,
     decode_camera_info,
-    decode_image,
     dump,
     encode_image,
     encode_twist_stamped,
@@ -56,6 +60,8 @@ from ddvs_service.protocol import (
 )
 from ddvs_service.protocol.control import PROCESS_OPS
 from ddvs_service.protocol.endpoints import Endpoints
+from ddvs_service.rectification import CameraGeometry, camera_geometry
+from ddvs_service.registration.images import to_grey
 from ddvs_service.service.config import IntrinsicsConfig, ServiceConfig, deep_merge
 from ddvs_service.service.inbox import Arrival, Inbox, Wakeup
 from ddvs_service.service.persistence import BackgroundWriter, StateStore
@@ -87,6 +93,9 @@ class RobotServo:
         self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
         self._resume_state: ServoState | None = None
         self._reference_stamp_ns: int | None = None
+        self._geometry: CameraGeometry | None = None  # of the newest camera info: intrinsics, rectification
+        self._info_key: tuple[Any, ...] | None = None  # what of that camera info the geometry depends on
+        self._frame_id = "camera"  # the camera's frame (header.frame_id of its newest frame)
         self._zero_sent = True
         self._seq = 0
         self._last_status: Status | None = None
@@ -178,7 +187,7 @@ class RobotServo:
         if self._ends is not None:
             return
         ends = Endpoints(session, self.keys, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
-        ends.subscriber("camera_image", self.inbox.on_frame)  # `ends` holds its subscriptions until `ends.close()`
+        ends.subscriber(self.config.camera.topic, self.inbox.on_frame)  # held until `ends.close()`
         ends.subscriber("camera_info", self.inbox.on_info)
         self._ends = ends
 
@@ -243,12 +252,17 @@ class RobotServo:
         if sample is None or self.config.intrinsics is not None:
             return  # configured intrinsics take precedence over camera info
         try:
-            intrinsics = decode_camera_info(sample.payload.to_bytes()).to_intrinsics()
-            if intrinsics == self.pipeline.intrinsics:
-                return
-            self.pipeline.set_intrinsics(intrinsics)
-            self._try_adopt_restored()
-            self._persist_state()
+            info = decode_camera_info(sample.payload.to_bytes())
+            key = (info.width, info.height, info.distortion_model, info.d.tobytes(), info.k.tobytes(),
+                   info.r.tobytes(), info.p.tobytes(), info.binning_x, info.binning_y, info.roi)
+            if key == self._info_key:
+                return  # a camera sends its info with every frame: the maps are computed once per calibration
+            geometry = camera_geometry(info, rectified=self.config.camera.images == "rect")
+            if geometry.intrinsics != self.pipeline.intrinsics:
+                self.pipeline.set_intrinsics(geometry.intrinsics)
+                self._try_adopt_restored()
+                self._persist_state()
+            self._geometry, self._info_key = geometry, key
         except (ProtocolError, ValueError) as exc:
             self.counters["rejected"] += 1
             log.warning("camera info rejected", extra=fields(error=str(exc)))
@@ -262,14 +276,16 @@ class RobotServo:
             return
         t_taken, cpu_taken = time.monotonic(), time.process_time()
         try:
-            msg = decode_image(arrival.sample.payload.to_bytes(), max_bytes=self.config.max_frame_bytes)
-            image = _grey_view(msg.array, msg.encoding)
+            header, pixels = decode_frame(arrival.sample.payload.to_bytes(), self.config.camera.transport ==
+                                          "compressed", self.config.max_frame_bytes)
+            image = pixels if self._geometry is None else self._geometry.frame(pixels)
         except (ProtocolError, ValueError) as exc:
             self._reject_frame(f"frame rejected: {exc}")
             return
+        self._frame_id = header.frame_id
         t_decoded = time.monotonic()
         if self._pending_reference is not None:
-            self._adopt_next_frame(image, msg.header.stamp.to_ns())
+            self._adopt_next_frame(image, header)
         try:
             step = self.pipeline.step(image)
         except ValueError as exc:
@@ -283,7 +299,7 @@ class RobotServo:
             self.counters["stale"] += 1
             step.message = f"stale: twist withheld, {newer} newer frames arrived while it was computed"
         else:
-            self._publish_twist(step.twist, msg.header.stamp, msg.header.frame_id)
+            self._publish_twist(step.twist, header.stamp, header.frame_id)
         t_done = time.monotonic()
         latency = {
             "decode": (t_decoded - t_taken) * 1e3,
@@ -293,8 +309,8 @@ class RobotServo:
             "total": (t_done - arrival.t) * 1e3,
             "cpu": (time.process_time() - cpu_taken) * 1e3,
         }
-        self._publish_status(step, msg.header.stamp.to_ns(), latency, stale)
-        self._residual.offer(msg.header, lambda: self.pipeline.residual(image))
+        self._publish_status(step, header.stamp.to_ns(), latency, stale)
+        self._residual.offer(header, lambda: self.pipeline.residual(image))
 
     def _reject_frame(self, message: str) -> None:
         self.counters["rejected"] += 1
@@ -307,7 +323,7 @@ class RobotServo:
                                                                      total=0),
                                  counters=self.current_counters(), message=message[:500]))
 
-    def _adopt_next_frame(self, image: NDArray, stamp_ns: int) -> None:
+    def _adopt_next_frame(self, image: NDArray, header: Header) -> None:
         assert self._pending_reference is not None
         if self.pipeline.intrinsics is None:
             log.warning("reference from the next frame waits for a camera info",
@@ -316,7 +332,7 @@ class RobotServo:
         _, roi = self._pending_reference
         self._pending_reference = None
         try:
-            self._set_reference(image, roi, stamp_ns, G0=np.eye(3))
+            self._set_reference(image, roi, header, G0=np.eye(3))
         except ValueError as exc:
             log.error("reference from the next frame refused", extra=fields(error=str(exc)))
 
@@ -384,7 +400,8 @@ class RobotServo:
             roi = _roi_tuple(command.roi)
             if command.source == "upload":
                 assert command.image is not None
-                self._set_reference(command.image.to_array(self.config.max_frame_bytes), roi, time.time_ns(), G0=None)
+                self._set_reference(self._uploaded(command.image.to_array(self.config.max_frame_bytes)), roi,
+                                    Header(Time.now(), self._frame_id), G0=None)
                 return self._snapshot().model_dump(mode="json")
             self._pending_reference = ("next_frame", roi)
             return {"pending": "the next camera frame becomes the reference"}
@@ -402,15 +419,25 @@ class RobotServo:
         self._publish_state(f"{op} command")
         return self._snapshot().model_dump(mode="json")
 
-    def _set_reference(self, image: NDArray, roi: tuple[int, int, int, int] | None, stamp_ns: int,
+    def _uploaded(self, image: NDArray) -> NDArray:
+        """An uploaded reference as the live frames are registered: a raw frame of the camera's size goes through
+        the same rectification (the camera's raw frames and an upload saved from them match)."""
+        rectifier = None if self._geometry is None else self._geometry.rectifier
+        if rectifier is None or image.shape[:2] != rectifier.map_x.shape:
+            return image
+        return rectifier(image if image.ndim == 2 else to_grey(image))
+
+    def _set_reference(self, image: NDArray, roi: tuple[int, int, int, int] | None, header: Header,
                        G0: NDArray | None) -> None:
+        """Adopt `image` (grey, as registered) as the reference and publish it on `servo/reference` with `header`:
+        the camera frame's own (frame_id and stamp of the frame it came from), or for an upload the camera's
+        frame_id stamped at the upload."""
         roi_used = self.pipeline.set_reference(image, roi, G0=G0)
-        self._reference_stamp_ns = stamp_ns
+        self._reference_stamp_ns = header.stamp.to_ns()
         reference = np.ascontiguousarray(image)
         self.writer.put_reference(reference.copy())
         self._persist_state()
-        if reference.dtype == np.uint8 and reference.ndim == 2:
-            self._pub["servo_reference"].put(encode_image(image_from_array(reference, "mono8")))
+        self._pub["servo_reference"].put(encode_image(reference_image(reference, header)))
         self._publish_state(f"reference set, roi {list(roi_used)}")
 
     # --- outputs ------------------------------------------------------------------------------------------------
@@ -490,15 +517,13 @@ def _roi_tuple(roi: Roi | None) -> tuple[int, int, int, int] | None:
     return None if roi is None else (roi.x, roi.y, roi.width, roi.height)
 
 
-def _grey_view(array: NDArray, encoding: str) -> NDArray:
-    """Grey pixels for the engine: mono images as they are (a view), colour converted (BT.601)."""
-    if array.ndim == 2:
-        if encoding == "mono16":
-            return array.astype(np.float32) * (255.0 / 65535.0)
-        return array
-    if encoding.startswith("rgb"):
-        array = array[..., 2::-1]
-    return array
+def reference_image(reference: NDArray, header: Header) -> Image:
+    """The reference as published: grey levels as the engine registers them, mono8 when they are bytes, else 32FC1
+    (16-bit and float frames, grey levels 0–255); a colour upload as its BT.601 grey."""
+    grey = reference if reference.ndim == 2 else to_grey(reference)
+    if grey.dtype == np.uint8:
+        return image_from_array(np.ascontiguousarray(grey), "mono8", header)
+    return image_from_array(np.ascontiguousarray(grey, dtype=np.float32), "32FC1", header)
 
 
 def _last_good(state: dict[str, Any]) -> NDArray | None:
