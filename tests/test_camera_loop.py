@@ -187,14 +187,14 @@ def test_the_reference_carries_the_cameras_header_whatever_the_frames_encoding(t
     grey = scene()
     bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     frames = {"bgr8": (bgr, "mono8", grey), "mono16": (grey.astype(np.uint16) * 257, "32FC1", grey)}
-    with running_service(service_config(port, tmp_path / "state"), tmp_path, port) as (_, op):
-        with LatestSubscriber(op.session, op.keys.key("servo_reference")) as references:
-            for k, (encoding, (pixels, published, expected)) in enumerate(frames.items()):
-                header = Header(Time(1_700_000_000 + k, 250_000_000), "wrist_camera_optical")
-                assert op.command(op="set_reference", source="next_frame").ok
-                op.send_raw(encode_image(image_from_array(pixels, encoding, header)))
-                sample = references.recv(10.0)
-                assert sample is not None, f"no reference published for a {encoding} frame"
-                reference = decode_image(sample.payload.to_bytes())
-                assert (reference.header, reference.encoding) == (header, published), encoding
-                np.testing.assert_allclose(reference.array, expected, atol=0.5)
+    with (running_service(service_config(port, tmp_path / "state"), tmp_path, port) as (_, op),
+          LatestSubscriber(op.session, op.keys.key("servo_reference")) as references):
+        for k, (encoding, (pixels, published, expected)) in enumerate(frames.items()):
+            header = Header(Time(1_700_000_000 + k, 250_000_000), "wrist_camera_optical")
+            assert op.command(op="set_reference", source="next_frame").ok
+            op.send_raw(encode_image(image_from_array(pixels, encoding, header)))
+            sample = references.recv(10.0)
+            assert sample is not None, f"no reference published for a {encoding} frame"
+            reference = decode_image(sample.payload.to_bytes())
+            assert (reference.header, reference.encoding) == (header, published), encoding
+            np.testing.assert_allclose(reference.array, expected, atol=0.5)
