@@ -151,7 +151,7 @@ class ServiceConfig(Settings):
     state_dir: Path = Field(default=Path("state"), json_schema_extra=START_ONLY,
                             description="Folder of the robot's persisted state (reference, estimate, changes).")
     camera: CameraSettings = Field(default_factory=CameraSettings, json_schema_extra=START_ONLY,
-                                   description="The camera topic the service reads: raw or rectified, compressed or not.")
+                                   description="The camera topic read: raw or rectified, compressed or not.")
     intrinsics: IntrinsicsConfig | None = Field(default=None, json_schema_extra=START_ONLY, description=(
         "The camera's intrinsics; null: those of the camera's camera/info."))
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings,
