@@ -31,30 +31,29 @@ class Prepared:
 
     def __init__(self, kernel: Callable[..., Any], *args: Any) -> None:
         self._args = args  # keeps the buffers alive
+        primal = kernel._primal  # type: ignore[attr-defined]  # taichi.lang.kernel_impl.Kernel
+        bound = [(value, argument.name) for value, argument in zip(args, primal.arguments, strict=True)
+                 if not isinstance(argument.annotation, template)]
+        for value, name in bound:  # the same contract on every backend
+            if isinstance(value, np.ndarray):
+                if not value.flags.c_contiguous:
+                    raise ValueError(f"argument {name!r}: a prepared launch needs C-contiguous arrays")
+            elif not isinstance(value, bool | int | float | np.integer | np.floating):
+                raise TypeError(f"argument {name!r}: a prepared launch takes numpy arrays and scalars, "
+                                f"got {type(value).__name__}")
         self._launch: Callable[[], None] = lambda: kernel(*args)  # the plain call: non-CPU backends keep it
         if impl.current_cfg().arch != ti.cpu:
             return
-        primal = kernel._primal  # type: ignore[attr-defined]  # taichi.lang.kernel_impl.Kernel
         t_kernel = primal.compiled_kernels[primal.ensure_compiled(*args)]
         context = t_kernel.make_launch_context()
-        slot = 0
-        for value, argument in zip(args, primal.arguments, strict=True):
-            annotation = argument.annotation
-            if isinstance(annotation, template):
-                continue
+        for slot, (value, _name) in enumerate(bound):
             if isinstance(value, np.ndarray):
-                if not value.flags.c_contiguous:
-                    raise ValueError(f"argument {argument.name!r}: a prepared launch needs C-contiguous arrays")
                 context.set_arg_external_array_with_shape((slot,), int(value.ctypes.data), value.nbytes,
                                                           value.shape, 0)
             elif isinstance(value, bool | int | np.integer):
                 context.set_arg_int((slot,), int(value))
-            elif isinstance(value, float | np.floating):
-                context.set_arg_float((slot,), float(value))
             else:
-                raise TypeError(f"argument {argument.name!r}: a prepared launch takes numpy arrays and scalars, "
-                                f"got {type(value).__name__}")
-            slot += 1
+                context.set_arg_float((slot,), float(value))
         prog = impl.get_runtime().prog
         compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
         self._launch = lambda: prog.launch_kernel(compiled, context)  # the closure keeps the context alive

@@ -302,11 +302,14 @@ def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
     """Serial tail of a step kernel: add the `nb` band partials (float64) into `work[:nacc]`, then write the median
     of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`.
 
-    The histograms are added band by band over each band's contiguous bins into local counts (integers: any order
-    gives the same counts): LLVM compiles that to a fraction of the machine code of a loop over a run-time number of
-    bands per bin (vectorised with its run-time checks and remainders), a first launch's code generation on every
-    start. The sums keep their loop over the bands per entry: a local float64 array of all `nacc` sums instead made
-    Taichi's IR passes, and so a cold compile, grow with the grid (benchmarks/README.md, start-up)."""
+    The histograms are added band by band over each band's contiguous bins into band 0's histogram in `work`
+    (integers: any order gives the same counts): LLVM compiles that to a fraction of the machine code of a loop over
+    a run-time number of bands per bin (vectorised with its run-time checks and remainders), a first launch's code
+    generation on every start. The sums keep their loop over the bands per entry: a local float64 array of all
+    `nacc` sums instead made Taichi's IR passes, and so a cold compile, grow with the grid (benchmarks/README.md,
+    start-up). No local array here at all: Taichi 1.7's SPIR-V code generation (Vulkan) fails on a kernel whose
+    parallel loop and serial tail both initialise a local array ("Value … does not yet exist": the element offsets
+    of the second array refer to constants of the first task; docs/gpu.md)."""
     hist0 = ti.static(nacc * (1 + MAX_BANDS))
     ti.loop_config(serialize=True)
     for _ in range(1):
@@ -315,22 +318,22 @@ def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
             for b in range(nb):
                 total += ti.cast(work[(1 + b) * nacc + k], ti.f64)
             work[k] = ti.cast(total, ti.f32)
-        count = ti.Vector([0.0] * HIST_BINS, ti.f32)
-        for b in range(nb):
+        for b in range(1, nb):
             for k in range(HIST_BINS):
-                count[k] += work[hist0 + b * HIST_BINS + k]
+                work[hist0 + k] += work[hist0 + b * HIST_BINS + k]
         counted = 0.0
         for k in range(HIST_BINS):
-            counted += count[k]
+            counted += work[hist0 + k]
         half = 0.5 * counted
         cum = 0.0
         median = 0.0
         found = 0
         for k in range(HIST_BINS):
-            if found == 0 and count[k] > 0.0 and cum + count[k] >= half:
-                median = hist_value(k, (half - cum) / count[k])
+            count = work[hist0 + k]
+            if found == 0 and count > 0.0 and cum + count >= half:
+                median = hist_value(k, (half - cum) / count)
                 found = 1
-            cum += count[k]
+            cum += count
         work[nacc - 1] = median
 
 
