@@ -116,6 +116,12 @@ def _first_positive(s1: ti.f32, s2: ti.f32) -> ti.f32:
     return s
 
 
+@ti.func
+def _switch(value: ti.f32) -> ti.i32:
+    """A packed on/off parameter (0.0 or 1.0) as the integer 0 or 1."""
+    return ti.select(value > 0.5, 1, 0)
+
+
 @ti.kernel
 def _render(
     p: ti.types.ndarray(dtype=ti.f32, ndim=1),
@@ -126,17 +132,18 @@ def _render(
     key: ti.u32,
 ):
     # Parameters read once into registers: inside the loop the compiler could not hoist loads that may alias
-    # the output arrays.
+    # the output arrays. The switches are integers: Taichi 1.7.4's SPIR-V code generation (Vulkan) gives every
+    # boolean that the serial part hands to the pixel loop the same slot, so all of them read the last one's value.
     k00, k01, k02, k11, k12 = p[P_KINV], p[P_KINV + 1], p[P_KINV + 2], p[P_KINV + 3], p[P_KINV + 4]
     r00, r01, r02 = p[P_R + 0], p[P_R + 1], p[P_R + 2]
     r10, r11, r12 = p[P_R + 3], p[P_R + 4], p[P_R + 5]
     r20, r21, r22 = p[P_R + 6], p[P_R + 7], p[P_R + 8]
     ox, oy, oz = p[P_O], p[P_O + 1], p[P_O + 2]
-    saddle = p[P_KIND] > 0.5
+    saddle = _switch(p[P_KIND])
     a = p[P_A]
     g0, g1, g2, g3, g4, g5 = p[P_GAIN], p[P_GAIN + 1], p[P_GAIN + 2], p[P_GAIN + 3], p[P_GAIN + 4], p[P_GAIN + 5]
-    bias, sigma, background, quantize = p[P_BIAS], p[P_NOISE], p[P_BACKGROUND], p[P_QUANTIZE] > 0.5
-    tiled = p[P_TILED] > 0.5
+    bias, sigma, background, quantize = p[P_BIAS], p[P_NOISE], p[P_BACKGROUND], _switch(p[P_QUANTIZE])
+    tiled = _switch(p[P_TILED])
     half_w, half_h = 0.5 * p[P_EXTENT], 0.5 * p[P_EXTENT + 1]
     th, tw = texture.shape[0], texture.shape[1]
     su = tw / p[P_EXTENT]  # texels per metre
@@ -157,7 +164,7 @@ def _render(
         dy = r10 * xn + r11 * yn + r12
         dz = r20 * xn + r21 * yn + r22
         s = ti.math.inf
-        if not saddle:
+        if saddle == 0:
             if dz != 0.0:
                 s = _first_positive(-oz / dz, -1.0)
         else:
@@ -179,7 +186,7 @@ def _render(
             x = ox + s * dx
             y = oy + s * dy
             albedo = _bilinear(texture, x * su + 0.5 * tw - 0.5, y * sv + 0.5 * th - 0.5)
-            if not tiled:
+            if tiled == 0:
                 n = ti.math.vec3(0.0, 0.0, 1.0)
                 if saddle:
                     n = ti.math.vec3(2.0 * x / a, -2.0 * y / a, -1.0)
@@ -199,7 +206,7 @@ def _render(
             u1n = (ti.cast(h1 >> 8, ti.f32) + 0.5) / 16777216.0
             u2n = ti.cast(h2 >> 8, ti.f32) / 16777216.0
             value += sigma * ti.sqrt(-2.0 * ti.log(u1n)) * ti.cos(6.283185307179586 * u2n)
-        if quantize:
+        if quantize == 1:
             value = ti.min(ti.max(ti.round(value), 0.0), 255.0)
         image[row, col] = value
         depth[row, col] = s

@@ -11,6 +11,7 @@ import pytest
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, se3_exp, so3_exp
+from kernels.backend import init
 from sim.freeflyer import Appearance, FreeFlyer, render_camera, render_view
 from sim.surfaces import Plane, paper_saddle
 from sim.textures import load_texture
@@ -48,12 +49,15 @@ def bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     ids=["saddle", "tilted plane"],
 )
 def test_rendered_depth_matches_the_float64_geometry(surface) -> None:
+    """Hit or miss as in float64 at every pixel on the CPU; elsewhere at all but 2 pixels: a ray tangent to the
+    saddle (discriminant 2e-10 of b² = 1.2 at START, pixel (117, 301)) hits or misses by float32 rounding, which
+    another backend rounds otherwise (contractions into fused multiply-adds, the device's division; docs/gpu.md)."""
     for T in (np.eye(4), START):
         image, depth = render_view(surface, smooth_texture(), INTR, T, Appearance(background=7.0))
         z = surface.intersect(T, rays()).reshape(depth.shape)
-        hit = np.isfinite(z)
-        np.testing.assert_array_equal(np.isfinite(depth), hit)
-        np.testing.assert_allclose(depth[hit], z[hit], rtol=1e-4)
+        hit = np.isfinite(depth)
+        assert np.count_nonzero(hit != np.isfinite(z)) <= (0 if init() == "cpu" else 2)
+        np.testing.assert_allclose(depth[hit & np.isfinite(z)], z[hit & np.isfinite(z)], rtol=1e-4)
         assert np.all(image[~hit] == 7.0)
 
 
