@@ -17,8 +17,8 @@ test: setup
 	$(VENV)/bin/ruff check .
 	@echo "[test] mypy (pyproject.toml, [tool.mypy])"
 	$(VENV)/bin/mypy
-	@echo "[test] pytest (every test, slow ones included)"
-	$(PY) -m pytest -q
+	@echo "[test] pytest (every test, slow ones included; the kernels on Vulkan too: docs/gpu.md)"
+	DDVS_REQUIRE_DEVICES=$${DDVS_REQUIRE_DEVICES:-vulkan} $(PY) -m pytest -q
 
 # Your own loop: the same checks without the tests marked slow (a few minutes on 2 cores).
 test-fast: setup

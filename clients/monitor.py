@@ -81,7 +81,8 @@ class Monitor:
 
     def snapshot(self) -> dict[str, Any]:
         """JSON-ready view: state, status `seq`, error, twist, rates (Hz over the window), latency (ms), counters,
-        message, and the router's audit summary (`audit`; None without a secured router)."""
+        message, the Taichi backend of the service's kernels (`backend`), and the router's audit summary (`audit`;
+        None without a secured router)."""
         now = time.monotonic()
         with self._lock:
             rates = {}
@@ -92,7 +93,7 @@ class Monitor:
             status, state, audit = self._status, self._latest["state"], self._latest["audit"]
         snap: dict[str, Any] = {"state": None, "seq": None, "has_reference": None, "error_norm": None, "error": None,
                                 "twist": None, "rates_hz": rates, "latency_ms": None, "counters": None,
-                                "message": "", "audit": audit}
+                                "message": "", "audit": audit, "backend": None}
         if state is not None:
             snap.update(state=state.get("state"), has_reference=state.get("has_reference"),
                         message=state.get("message", ""))
@@ -100,7 +101,8 @@ class Monitor:
             snap.update(state=status.get("state"), seq=status.get("seq"), error_norm=status.get("error_norm"),
                         error=status.get("error"),
                         twist=status.get("twist"), latency_ms=status.get("latency_ms"),
-                        counters=status.get("counters"), message=status.get("message") or snap["message"])
+                        counters=status.get("counters"), message=status.get("message") or snap["message"],
+                        backend=status.get("backend") or None)
         return snap
 
 
@@ -138,6 +140,7 @@ def render(snap: dict[str, Any], title: str) -> str:
         "latency ms   " + ("—" if not latency else "   ".join(f"{k} {v:.2f}" for k, v in latency.items())),
         "counters     " + ("—" if not counters else "   ".join(f"{k} {v}" for k, v in counters.items())),
         f"message      {snap['message'] or ''}",
+        f"backend      {snap['backend'] or '—'}   (Taichi, the service's kernels)",
         f"security     {_audit_line(snap['audit'])}",
     ]
     return "\n".join(lines)

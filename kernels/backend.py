@@ -4,7 +4,9 @@
 asked, or the `DDVS_TAICHI_ARCH` environment variable; `ddvs serve --arch`); later calls return the architecture in
 use and refuse a conflicting request, because Taichi cannot switch backend without invalidating every allocated
 field. Taichi falls back to the CPU when the requested device is absent (it warns); `init` returns the architecture
-Taichi actually runs on (`cpu` then), so a caller can tell.
+Taichi actually runs on (`cpu` then), so a caller can tell, or, with `fallback=False`, refuses the fallback
+(`BackendUnavailable`). Every kernel of this package runs on every backend from one source (docs/gpu.md: what
+Taichi's SPIR-V path for Vulkan cannot take, and how far each backend's sums differ from the CPU's).
 """
 
 from __future__ import annotations
@@ -26,9 +28,15 @@ _chosen: str | None = None  # the backend Taichi runs on
 _requested: str | None = None  # what the first call asked for
 
 
-def init(arch: str | None = None) -> str:
-    """Initialise Taichi on `arch` ('cpu', 'cuda', 'vulkan' or 'gpu') once; return the architecture in use ('cpu',
-    'cuda', 'vulkan', …: Taichi's name of the backend it started, which differs from `arch` after a fallback)."""
+class BackendUnavailable(RuntimeError):
+    """Taichi could not start the requested backend here (no such device or driver) and no fallback was allowed."""
+
+
+def init(arch: str | None = None, fallback: bool = True) -> str:
+    """Initialise Taichi on `arch` ('cpu', 'cuda', 'vulkan' or 'gpu'; default `$DDVS_TAICHI_ARCH`, else 'cpu') once;
+    return the architecture in use ('cpu', 'cuda', 'vulkan', …: Taichi's name of the backend it started, which
+    differs from `arch` after a fallback). With `fallback=False` a start on another backend than the one asked for
+    ('gpu': any but the CPU) is undone and raises `BackendUnavailable`."""
     global _chosen, _requested
     requested = arch or os.environ.get("DDVS_TAICHI_ARCH", "cpu")
     if requested not in _ARCHS:
@@ -47,10 +55,24 @@ def init(arch: str | None = None) -> str:
         log_level=ti.WARN,
         debug=False,
     )
-    _requested = requested
     started = impl.current_cfg().arch
-    _chosen = "cpu" if started == ti.cpu else started.name  # `ti.cpu` is the host's (x64, arm64)
+    running = "cpu" if started == ti.cpu else started.name  # `ti.cpu` is the host's (x64, arm64)
+    if not fallback and not satisfies(requested, running):
+        ti.reset()
+        raise BackendUnavailable(f"Taichi cannot start the {requested!r} backend here (it fell back to {running!r}): "
+                                 f"expected a {requested} device and its driver")
+    _requested, _chosen = requested, running
     return _chosen
+
+
+def satisfies(requested: str, running: str) -> bool:
+    """Whether Taichi running on `running` is what `requested` asked for ('gpu': any backend but the CPU)."""
+    return running != "cpu" if requested == "gpu" else running == requested
+
+
+def current() -> str:
+    """The backend Taichi runs on ('cpu', 'vulkan', 'cuda', …), or '' before `init`."""
+    return _chosen or ""
 
 
 def finish() -> None:

@@ -38,14 +38,8 @@ fi
 "$VENV/bin/python" -m compileall -q ddvs ddvs_service kernels clients sim orchestration evaluation >/dev/null \
     || { say "ERROR: compiling the project's modules to bytecode failed"; exit 1; }
 
-# SAPIEN rendering: probe in a subprocess (cached once it succeeded).
-RSTAMP="$VENV/.ddvs-render-ok"
-if [ -f "$RSTAMP" ]; then
-    say "SAPIEN rendering already verified"
-elif "$VENV/bin/python" -m sim.render_probe >/dev/null 2>&1; then
-    say "SAPIEN finds a Vulkan rendering device"; touch "$RSTAMP"
-else
-    say "SAPIEN finds no Vulkan rendering device: installing Mesa (lavapipe) from bookworm-backports"
+# Mesa's Vulkan drivers (lavapipe: Vulkan on the CPU) from bookworm-backports, for a machine without a GPU.
+install_mesa() {
     SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
     if ! grep -rqs "bookworm-backports" /etc/apt/sources.list /etc/apt/sources.list.d/; then
         say "adding the bookworm-backports suite to the Debian apt sources"
@@ -55,11 +49,33 @@ else
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq -t bookworm-backports \
         mesa-vulkan-drivers libvulkan1 >/dev/null
+}
+
+# SAPIEN rendering: probe in a subprocess (cached once it succeeded).
+RSTAMP="$VENV/.ddvs-render-ok"
+if [ -f "$RSTAMP" ]; then
+    say "SAPIEN rendering already verified"
+elif "$VENV/bin/python" -m sim.render_probe >/dev/null 2>&1; then
+    say "SAPIEN finds a Vulkan rendering device"; touch "$RSTAMP"
+else
+    say "SAPIEN finds no Vulkan rendering device: installing Mesa (lavapipe) from bookworm-backports"
+    install_mesa
     if "$VENV/bin/python" -m sim.render_probe; then
         say "SAPIEN renders now"; touch "$RSTAMP"
     else
         say "ERROR: SAPIEN still cannot render after installing Mesa from bookworm-backports"; exit 1
     fi
+fi
+
+# Taichi's Vulkan backend (the kernels' GPU path that `make test` checks, docs/gpu.md): a device or lavapipe.
+VPROBE="from kernels.backend import init; import sys; sys.exit(init('vulkan') != 'vulkan')"
+if "$VENV/bin/python" -c "$VPROBE" >/dev/null 2>&1; then
+    say "Taichi starts on Vulkan"
+else
+    say "Taichi finds no Vulkan device: installing Mesa (lavapipe) from bookworm-backports"
+    install_mesa
+    "$VENV/bin/python" -c "$VPROBE" >/dev/null 2>&1 \
+        || { say "ERROR: Taichi still cannot start on Vulkan after installing Mesa from bookworm-backports"; exit 1; }
 fi
 
 # Taichi's offline cache for the shipped service configurations: a first `ddvs serve --config configs/serve/…` loads

@@ -46,7 +46,7 @@ def _publish(port: int, stop: threading.Event, hz: float = 50.0) -> None:
                             error=[0.01, 0, 0, 0, 0, 0], error_norm=0.01, iterations=2, residual_rms=1.0,
                             inlier_ratio=0.9, twist=[0.001, 0, 0, 0, 0, 0.002],
                             latency_ms=Latency(decode=0.1, registration=5.0, control=0.3, publish=0.1, total=5.5),
-                            counters=Counters(frames=seq, dropped=0, rejected=0))
+                            counters=Counters(frames=seq, dropped=0, rejected=0), backend="vulkan")
             pubs["servo_status"].put(dump(status))
             pubs["servo_twist"].put(encode_twist_stamped(TwistStamped(Header(Time.now(), "camera"), [0, 0, 0],
                                                                       [0, 0, 0])))
@@ -73,12 +73,12 @@ def test_snapshot_has_the_newest_status_and_the_arrival_rates():
         stop.set()
         publisher.join(5)
     assert snap["state"] == "SERVOING" and snap["error_norm"] == 0.01 and snap["seq"] > 0
-    assert snap["latency_ms"]["registration"] == 5.0
+    assert snap["latency_ms"]["registration"] == 5.0 and snap["backend"] == "vulkan"
     rates = snap["rates_hz"]
     assert 30 <= rates["status"] <= 52 and 30 <= rates["twists"] <= 52, rates
     assert 15 <= rates["frames"] <= 26, rates
     text = render(snap, KEYS.base)
-    assert "SERVOING" in text and "1.000e-02" in text and "registration 5.00" in text
+    assert "SERVOING" in text and "1.000e-02" in text and "registration 5.00" in text and "backend      vulkan" in text
 
 
 def _once(port: int, timeout: float) -> subprocess.CompletedProcess:

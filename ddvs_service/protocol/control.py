@@ -177,6 +177,7 @@ class Status(_Message):
     latency_ms: Latency
     counters: Counters
     message: str = ""
+    backend: str = ""  # the Taichi backend the kernels run on ('cpu', 'vulkan', 'cuda'; '' when not reported)
 
 
 class StateSnapshot(_Message):

@@ -69,6 +69,7 @@ from ddvs_service.service.pipeline import ServoPipeline, StepResult
 from ddvs_service.service.residual_publisher import ResidualPublisher
 from ddvs_service.service.ros_commands import declare_command_services
 from ddvs_service.service.state import ServoState, TransitionError
+from kernels.backend import current as current_backend
 
 log = logging.getLogger("ddvs.serve")
 ZERO6 = np.zeros(6)
@@ -321,7 +322,8 @@ class RobotServo:
                                  error=[0.0] * 6, error_norm=0.0, iterations=0, residual_rms=0.0, inlier_ratio=0.0,
                                  twist=[0.0] * 6, latency_ms=Latency(decode=0, registration=0, control=0, publish=0,
                                                                      total=0),
-                                 counters=self.current_counters(), message=message[:500]))
+                                 counters=self.current_counters(), message=message[:500],
+                                 backend=current_backend()))
 
     def _adopt_next_frame(self, image: NDArray, header: Header) -> None:
         assert self._pending_reference is not None
@@ -462,6 +464,7 @@ class RobotServo:
                 "iterations": step.iterations, "residual_rms": step.residual_rms,
                 "inlier_ratio": min(max(step.inlier_ratio, 0.0), 1.0), "twist": step.twist.tolist(),
                 "latency_ms": latency, "counters": self._counts(), "message": step.message[:500],
+                "backend": current_backend(),
             }))
         if changed or self.pipeline.rho_coeffs != self._persisted_rho:
             self._persisted_rho = list(self.pipeline.rho_coeffs)

@@ -40,8 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="compile the configured robots' kernels into Taichi's offline cache and exit, without "
                              "serving or touching the state directory (set-up: the first start is then a warm one)")
     parser.add_argument("--arch", choices=["cpu", "cuda", "vulkan", "gpu"],
-                        help="Taichi backend of the kernels (default: $DDVS_TAICHI_ARCH, else cpu); Taichi falls back "
-                             "to the CPU when the device is absent, and the log says which one runs")
+                        help="Taichi backend of the kernels (default: $DDVS_TAICHI_ARCH, else cpu; gpu: cuda or "
+                             "vulkan, whichever Taichi finds); the service exits with status 3 when it cannot start "
+                             "it, unless --cpu-fallback (docs/gpu.md)")
+    parser.add_argument("--cpu-fallback", action="store_true",
+                        help="serve on the CPU when the --arch backend cannot start (the log and the status say so)")
     parser.add_argument("--realtime-priority", type=int, metavar="1-99",
                         help="run under SCHED_FIFO at this priority (needs root or CAP_SYS_NICE)")
     add_zenoh_arguments(parser)
@@ -88,11 +91,16 @@ def run(args: argparse.Namespace) -> int:
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.fleet_config import FleetConfig, read_file
     from ddvs_service.service.process import ServeProcess
-    from kernels.backend import finish, init
+    from kernels.backend import BackendUnavailable, finish, init
 
     setup_logging(args.log_level)
     log = logging.getLogger("ddvs.serve")
-    log.info("taichi backend", extra=fields(requested=args.arch or "default", running=init(args.arch)))
+    try:
+        running = init(args.arch, fallback=args.cpu_fallback)
+    except BackendUnavailable as exc:
+        log.error("taichi backend unavailable", extra=fields(error=f"{exc}; --cpu-fallback serves on the CPU"))
+        return 3
+    log.info("taichi backend", extra=fields(requested=args.arch or "default", running=running))
     try:
         base, robots, process = read_file(args.config) if args.config else (ServiceConfig(), None, None)
         update: dict[str, object] = {"zenoh": session_config_from_args(args, base=base.zenoh),
