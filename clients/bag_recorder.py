@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 from clients.channels import ChannelSpec, run_channels
+from ddvs_service.protocol.keys import CAMERA_IMAGES
 
 if TYPE_CHECKING:
     import zenoh
@@ -39,10 +40,18 @@ class _Stamped(Protocol):
 
 def header_stamp_ns(key_name: str, payload: bytes) -> int:
     """Validate a CDR payload with the protocol's decoder of its key; returns its header stamp (ns)."""
-    from ddvs_service.protocol import decode_camera_info, decode_image, decode_joint_state, decode_twist_stamped
+    from ddvs_service.protocol import (
+        decode_camera_info,
+        decode_compressed_image,
+        decode_image,
+        decode_joint_state,
+        decode_twist_stamped,
+    )
 
     decoders: dict[str, Callable[[bytes], _Stamped]] = {
-        "camera_image": decode_image, "servo_reference": decode_image, "servo_residual": decode_image,
+        "camera_image": decode_image, "camera_image_rect": decode_image, "servo_reference": decode_image,
+        "servo_residual": decode_image, "camera_image_compressed": decode_compressed_image,
+        "camera_image_rect_compressed": decode_compressed_image,
         "camera_info": decode_camera_info,
         "servo_twist": decode_twist_stamped, "arm_joint_states": decode_joint_state,
     }
@@ -59,8 +68,9 @@ def check_json(key_name: str, payload: bytes) -> None:
 class BagRecorder:
     """Subscribes the run's keys on `session` and writes them with `writer` until `run`'s stop event is set.
 
-    `frames`: `raw` (sensor_msgs/Image as published), `png`/`jpeg` (re-encoded as sensor_msgs/CompressedImage) or
-    `none`; `frame_every`: keep every N-th camera frame. `writer` must have the channels of
+    `frames`: `raw` (every camera row as published: Image and CompressedImage), `png`/`jpeg` (Image frames
+    re-encoded as sensor_msgs/CompressedImage on their row's `/compressed`, compressed ones as published) or `none`;
+    `frame_every`: keep every N-th camera frame of each row. `writer` must have the channels of
     `run_channels(keys, frames)`."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, writer: BagWriter, frames: str = "raw",
@@ -74,22 +84,23 @@ class BagRecorder:
         self.rejected = 0
         self.frames_dropped = 0
         self.specs: dict[str, ChannelSpec] = {spec.key_name: spec for spec in run_channels(keys, frames)}
-        self.received = dict.fromkeys(self.specs, 0)
+        rows = CAMERA_IMAGES if frames != "none" else ()
+        self.received = dict.fromkeys((*rows, *(name for name in self.specs if name not in CAMERA_IMAGES)), 0)
         self._messages: queue.SimpleQueue[tuple[str, int, bytes]] = queue.SimpleQueue()
-        self._frames: queue.Queue[tuple[int, bytes]] = queue.Queue(FRAME_QUEUE)
+        self._frames: queue.Queue[tuple[str, int, bytes]] = queue.Queue(FRAME_QUEUE)
         self._subscribers = [session.declare_subscriber(keys.key(name), self._callback(name))
                              for name in self.received]
 
     def _callback(self, key_name: str):
         def on_sample(sample: zenoh.Sample) -> None:
             self.received[key_name] += 1
-            if key_name != "camera_image":
+            if key_name not in CAMERA_IMAGES:
                 self._messages.put((key_name, time.time_ns(), sample.payload.to_bytes()))
                 return
             if (self.received[key_name] - 1) % self.frame_every:
                 return
             try:
-                self._frames.put_nowait((time.time_ns(), sample.payload.to_bytes()))
+                self._frames.put_nowait((key_name, time.time_ns(), sample.payload.to_bytes()))
             except queue.Full:
                 self.frames_dropped += 1
 
@@ -114,19 +125,25 @@ class BagRecorder:
             return
         self.writer.write(spec.topic, payload, recv_ns, stamp_ns)
 
-    def _write_frame(self, recv_ns: int, payload: bytes) -> None:
+    def _write_frame(self, key_name: str, recv_ns: int, payload: bytes) -> None:
+        """A camera frame of row `key_name`: as published, or an Image re-encoded on its row's `/compressed`."""
         from clients.compressed_image import compress_image
         from ddvs_service.protocol import decode_image
 
-        spec = self.specs["camera_image"]
+        as_published = key_name in self.specs
         try:
-            image = decode_image(payload)
-            data = payload if self.frames == "raw" else compress_image(image, self.frames, self.jpeg_quality)
+            if as_published:
+                data, stamp_ns = payload, header_stamp_ns(key_name, payload)
+            else:
+                image = decode_image(payload)
+                data = compress_image(image, self.frames, self.jpeg_quality)
+                stamp_ns = image.header.stamp.to_ns()
         except ValueError as exc:
             self.rejected += 1
             log.warning("not recording a frame: %s", exc)
             return
-        self.writer.write(spec.topic, data, recv_ns, image.header.stamp.to_ns())
+        self.writer.write(self.specs[key_name if as_published else f"{key_name}_compressed"].topic, data, recv_ns,
+                          stamp_ns)
 
     def drain(self) -> int:
         """Write everything queued so far (closing the open chunks when due); returns the samples handled."""

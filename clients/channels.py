@@ -6,8 +6,8 @@ recorder or a watched live view makes it publish (at most 5 Hz). ROS-typed keys 
 channels whose schema is the full `ros2msg` definition (`ddvs_service.protocol.msgdefs`); JSON keys become `json`
 channels whose schema is the message's JSON schema (`ddvs_service/schemas/*.json`, the servo configuration's from
 its model). Topic names (`topic_name`) are the ROS
-names of the keys (`Keys.ros_topic`); compressed frames go to `<image topic>/compressed`, as `image_transport`
-names them.
+names of the keys (`Keys.ros_topic`). Camera frames have a channel per row they may arrive on (`CAMERA_IMAGES`:
+`image_raw`, `image_rect` and their `/compressed`, as `image_transport` names them).
 """
 
 from __future__ import annotations
@@ -17,15 +17,15 @@ from dataclasses import dataclass
 from functools import cache
 
 from ddvs_service.protocol import TOPICS, Keys
+from ddvs_service.protocol.keys import CAMERA_IMAGES
 from ddvs_service.protocol.msgdefs import message_definition
 from ddvs_service.protocol.schemas import SCHEMA_DIR
 
-COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 JSON_SCHEMAS = {"servo_status": "status", "servo_state": "state_snapshot", "arm_ground_truth": "ground_truth"}
 """JSON key → file name (without `.json`) of its schema under `ddvs_service/schemas/`."""
 JSON_SCHEMA_NAMES = {"servo_status": "ddvs/Status", "servo_state": "ddvs/StateSnapshot",
                      "arm_ground_truth": "ddvs/GroundTruth", "servo_config": "ddvs/ServiceConfig"}
-ROS_KEYS = ("camera_image", "camera_info", "servo_twist", "arm_joint_states", "servo_reference", "servo_residual")
+ROS_KEYS = ("camera_info", "servo_twist", "arm_joint_states", "servo_reference", "servo_residual")
 JSON_KEYS = ("servo_status", "servo_state", "arm_ground_truth", "servo_config")
 POSE_SUFFIX = "arm/camera_pose"
 """The live view's ground-truth camera pose (`foxglove.FrameTransform` `world → camera`) is `/<prefix>/<robot>/`
@@ -86,16 +86,17 @@ def json_channel(keys: Keys, key_name: str) -> ChannelSpec:
                        json_schema(key_name))
 
 
-def compressed_image_channel(keys: Keys) -> ChannelSpec:
-    """`sensor_msgs/msg/CompressedImage` frames on `<camera image topic>/compressed`."""
-    return ros_channel(keys, "camera_image", COMPRESSED_IMAGE, topic_name(keys, "camera_image") + "/compressed")
+def frame_rows(frames: str) -> tuple[str, ...]:
+    """The camera rows with a channel: every one of `CAMERA_IMAGES` with `frames` `raw` (as published), the
+    compressed ones with `png`/`jpeg` (Image frames re-encoded into them), none with `none`."""
+    if frames not in ("raw", "png", "jpeg", "none"):
+        raise ValueError(f"frames {frames!r}: expected raw, png, jpeg or none")
+    if frames == "raw":
+        return CAMERA_IMAGES
+    return () if frames == "none" else tuple(row for row in CAMERA_IMAGES if row.endswith("_compressed"))
 
 
 def run_channels(keys: Keys, frames: str = "raw") -> list[ChannelSpec]:
     """Every channel of a servo run; `frames` is `raw` (Image), `png`/`jpeg` (CompressedImage) or `none`."""
-    if frames not in ("raw", "png", "jpeg", "none"):
-        raise ValueError(f"frames {frames!r}: expected raw, png, jpeg or none")
-    specs = [ros_channel(keys, name) for name in ROS_KEYS if name != "camera_image" or frames == "raw"]
-    if frames in ("png", "jpeg"):
-        specs.insert(0, compressed_image_channel(keys))
-    return specs + [json_channel(keys, name) for name in JSON_KEYS]
+    return ([ros_channel(keys, name) for name in (*frame_rows(frames), *ROS_KEYS)]
+            + [json_channel(keys, name) for name in JSON_KEYS])

@@ -23,7 +23,8 @@ if TYPE_CHECKING:
 
     from ddvs_service.protocol import Keys
 
-RATE_STREAMS = {"frames": "camera_image", "twists": "servo_twist", "status": "servo_status"}
+RATE_STREAMS = ("frames", "twists", "status")
+"""The rates shown: camera frames (on any camera row: raw, rectified, compressed), twists, status messages."""
 CLEAR = "\x1b[H\x1b[2J"
 
 
@@ -40,8 +41,11 @@ class Monitor:
         self._status: dict[str, Any] | None = None
         self._latest: dict[str, dict[str, Any] | None] = {"state": None, "audit": None}  # newest JSON message
         self.status_received = threading.Event()
-        self._subscribers = [session.declare_subscriber(keys.key(key), self._on_arrival(name))
-                             for name, key in RATE_STREAMS.items()]
+        from ddvs_service.protocol.keys import CAMERA_IMAGES
+
+        rows = {"frames": CAMERA_IMAGES, "twists": ("servo_twist",), "status": ("servo_status",)}
+        self._subscribers = [session.declare_subscriber(keys.key(row), self._on_arrival(name))
+                             for name in RATE_STREAMS for row in rows[name]]
         self._subscribers.append(session.declare_subscriber(keys.servo_state, self._on_json("state")))
         from ddvs_service.protocol.audit import audit_key
 

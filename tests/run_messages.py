@@ -7,6 +7,7 @@ import numpy as np
 
 from ddvs_service.protocol import (
     CameraInfo,
+    CompressedImage,
     Counters,
     GroundTruth,
     Header,
@@ -17,6 +18,7 @@ from ddvs_service.protocol import (
     TwistStamped,
     dump,
     encode_camera_info,
+    encode_compressed_image,
     encode_image,
     encode_joint_state,
     encode_twist_stamped,
@@ -35,11 +37,23 @@ def frame(seq: int) -> np.ndarray:
     return ((np.arange(48 * 64).reshape(48, 64) + seq) % 256).astype(np.uint8)
 
 
+def png(seq: int) -> bytes:
+    """`frame(seq)` as a PNG file."""
+    import cv2
+
+    return cv2.imencode(".png", frame(seq))[1].tobytes()
+
+
 def run_payloads(seq: int) -> dict[str, bytes]:
-    """One payload of every recorded key, numbered `seq` (header stamps 1 s + `seq` ns, ground truth `seq` ns)."""
+    """One payload of every recorded key, numbered `seq` (header stamps 1 s + `seq` ns, ground truth `seq` ns); the
+    camera's frames on each of its rows (raw, rectified, and both as PNG CompressedImage)."""
     header = Header(Time.from_ns(1_000_000_000 + seq), "camera")
+    compressed = encode_compressed_image(CompressedImage(header, "png", png(seq)))
     return {
         "camera_image": encode_image(image_from_array(frame(seq), "mono8", header)),
+        "camera_image_rect": encode_image(image_from_array(frame(seq), "mono8", header)),
+        "camera_image_compressed": compressed,
+        "camera_image_rect_compressed": compressed,
         "camera_info": encode_camera_info(CameraInfo(header, 48, 64, k=[50, 0, 31.5, 0, 50, 23.5, 0, 0, 1])),
         "servo_twist": encode_twist_stamped(TwistStamped(header, [seq, 0, 0], [0, 0, 0.1])),
         "arm_joint_states": encode_joint_state(JointState(Header(header.stamp, "base"), ["j1", "j2"], [seq, 1.0],

@@ -31,7 +31,7 @@ from clients.bag import (
     recover_bag,
     storage_files,
 )
-from clients.channels import compressed_image_channel, json_schema, run_channels, topic_name
+from clients.channels import json_schema, ros_channel, run_channels, topic_name
 from clients.compressed_image import compress_image
 from ddvs_service.protocol import (
     TOPICS,
@@ -123,8 +123,8 @@ def test_recorded_run_is_read_by_rosbags_and_the_mcap_reader(tmp_path):
         for connection, _, raw in reader.messages():
             decoded.setdefault(connection.topic, []).append((reader.deserialize(raw, connection.msgtype), raw))
         metadata_counts = {c.topic: c.msgcount for c in reader.connections}
-    for name in ("camera_image", "camera_info", "servo_twist", "arm_joint_states", "servo_reference",
-                 "servo_residual"):
+    for name in ("camera_image", "camera_image_rect", "camera_image_compressed", "camera_image_rect_compressed",
+                 "camera_info", "servo_twist", "arm_joint_states", "servo_reference", "servo_residual"):
         raws = [raw for _, raw in decoded[topic_of[name]]]
         _assert_in_order(raws, sent[name], name)
         assert metadata_counts[topic_of[name]] == len(raws)
@@ -254,7 +254,7 @@ def test_a_file_cut_anywhere_reads_back_whole_chunks(tmp_path):
 def test_compressed_frames_decode_with_rosbags(tmp_path):
     keys = Keys("ddvs", "png")
     image = image_from_array(frame(3), "mono8", Header(Time.from_ns(5), "camera"))
-    spec = compressed_image_channel(keys)
+    spec = ros_channel(keys, "camera_image_compressed")
     writer = BagWriter(tmp_path / "bag", [spec])
     writer.write(spec.topic, compress_image(image, "png"), 10, 5)
     writer.write(spec.topic, compress_image(image, "jpeg"), 11, 5)

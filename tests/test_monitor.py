@@ -9,11 +9,13 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from conftest import free_port
 
 from clients.monitor import Monitor, render
 from ddvs_service.protocol import (
+    CompressedImage,
     Counters,
     Header,
     Keys,
@@ -24,6 +26,7 @@ from ddvs_service.protocol import (
     TwistStamped,
     declare_publisher,
     dump,
+    encode_compressed_image,
     encode_image,
     encode_twist_stamped,
     image_from_array,
@@ -35,11 +38,14 @@ KEYS = Keys("ddvs", "montest")
 
 
 def _publish(port: int, stop: threading.Event, hz: float = 50.0) -> None:
-    """Status and twist at `hz`, frames at `hz / 2`, until `stop`."""
+    """Status and twist at `hz`, frames at `hz / 2` (half of them JPEG CompressedImage on camera/image/compressed),
+    until `stop`."""
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
-        names = ("servo_status", "servo_twist", "camera_image")
+        names = ("servo_status", "servo_twist", "camera_image", "camera_image_compressed")
         pubs = {name: declare_publisher(session, KEYS, name) for name in names}
         image = encode_image(image_from_array(np.zeros((24, 32), np.uint8), "mono8"))
+        jpeg = cv2.imencode(".jpg", np.zeros((24, 32), np.uint8))[1].tobytes()
+        compressed = encode_compressed_image(CompressedImage(Header(Time.now(), "camera"), "jpeg", jpeg))
         seq = 0
         while not stop.is_set():
             status = Status(robot=KEYS.robot, state="SERVOING", frame_stamp_ns=seq, seq=seq,
@@ -50,8 +56,10 @@ def _publish(port: int, stop: threading.Event, hz: float = 50.0) -> None:
             pubs["servo_status"].put(dump(status))
             pubs["servo_twist"].put(encode_twist_stamped(TwistStamped(Header(Time.now(), "camera"), [0, 0, 0],
                                                                       [0, 0, 0])))
-            if seq % 2 == 0:
+            if seq % 4 == 0:
                 pubs["camera_image"].put(image)
+            elif seq % 4 == 2:
+                pubs["camera_image_compressed"].put(compressed)
             seq += 1
             stop.wait(1.0 / hz)
 

@@ -121,6 +121,9 @@ TOPICS: dict[str, TopicSpec] = {
     ),
 }  # fmt: skip
 
+CAMERA_IMAGES = ("camera_image", "camera_image_rect", "camera_image_compressed", "camera_image_rect_compressed")
+"""The rows a camera's frames may arrive on: raw or rectified, as Image or CompressedImage (docs/cameras.md)."""
+
 
 def _validate_part(what: str, value: str) -> None:
     if not isinstance(value, str) or not value:

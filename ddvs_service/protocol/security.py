@@ -12,7 +12,7 @@ Roles and what each may do, by entry of `keys.TOPICS` (deny by default, everythi
 
 (†) and the ROS 2 mode's `arm/velocity_commands` (`std_msgs/Float64MultiArray`). (‡) and the residual image
 (`servo/residual`), withheld from observers with the frames. (*) raw, rectified, and both compressed
-(`CAMERA_FRAMES`).
+(`keys.CAMERA_IMAGES`).
 
 A fleet is the robots one `ddvs serve` process serves (docs/deployment.md, "Many robots, one process"): each role gets
 the same grants on every robot's keys (one rule per role and flow, naming the keys of every robot), and the process's
@@ -47,12 +47,11 @@ from typing import Any
 
 from ddvs_service.protocol.audit import audit_key
 from ddvs_service.protocol.control import process_command_key
-from ddvs_service.protocol.keys import TOPICS, Keys
+from ddvs_service.protocol.keys import CAMERA_IMAGES, TOPICS, Keys
 from ddvs_service.protocol.session import SessionConfig
 
 ROLES = ("service", "plant", "bridge", "operator", "observer")
-CAMERA_FRAMES = ("camera_image", "camera_image_rect", "camera_image_compressed", "camera_image_rect_compressed")
-FRAME_TOPICS = (*CAMERA_FRAMES, "servo_reference", "servo_residual")
+FRAME_TOPICS = (*CAMERA_IMAGES, "servo_reference", "servo_residual")
 AUDIT_READERS = ("operator", "observer")  # may read the router's audit summary (`audit.audit_key`)
 SECURE_PROTOCOLS = ("tls", "quic")
 _SCOPE = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
@@ -80,12 +79,12 @@ _SAMPLE_TOPICS = tuple(n for n in TOPICS if n not in ("servo_command", "liveline
 ROLE_GRANTS: dict[str, Grants] = {
     "service": Grants(
         publish=("servo_twist", "servo_status", "servo_config", "servo_state", "servo_reference", "servo_residual"),
-        subscribe=(*CAMERA_FRAMES, "camera_info"),
+        subscribe=(*CAMERA_IMAGES, "camera_info"),
         serve=("servo_command", PROCESS_COMMAND),
         tokens=("liveliness",),
     ),
     "plant": Grants(
-        publish=(*CAMERA_FRAMES, "camera_info", "arm_joint_states", "arm_ground_truth"),
+        publish=(*CAMERA_IMAGES, "camera_info", "arm_joint_states", "arm_ground_truth"),
         subscribe=("arm_joint_velocity", "arm_velocity_commands", "servo_twist"),
     ),
     "bridge": Grants(
