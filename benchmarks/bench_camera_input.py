@@ -16,10 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -28,7 +25,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ddvs_service.camera import Intrinsics  # noqa: E402 - after the path set-up
+from benchmarks.bench_global_init import median_ms  # noqa: E402 - after the path set-up
+from ddvs_service.camera import Intrinsics  # noqa: E402
 from ddvs_service.grey import decode_frame  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402
     CompressedImage,
@@ -45,18 +43,6 @@ from sim.textures import texture_path  # noqa: E402
 SIZES = ((320, 240), (640, 480))
 LENSES = {"plumb_bob": (-0.3, 0.1, 0.0, 0.0, 0.0), "equidistant": (0.05, -0.02, 0.0, 0.0)}
 HEADER = Header(Time(1, 0), "camera")
-
-
-def median_ms(call: Callable[[], object], repeats: int) -> float:
-    """Median wall time of `call`, ms (after 5 untimed calls)."""
-    for _ in range(5):
-        call()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
 
 
 def frame_of_size(width: int, height: int) -> np.ndarray:
