@@ -2,7 +2,8 @@
 
 Steps, each a subprocess with `DDVS_TAICHI_ARCH` set to the backend (docs/gpu.md):
 1. `tests/test_kernels_devices.py` for the backend, required (`DDVS_REQUIRE_DEVICES`: a missing device fails);
-2. `bench_registration.py`, `bench_general.py`, `bench_global_init.py` with shortened settings.
+2. `bench_registration.py`, `bench_general.py`, `bench_global_init.py` and `bench_frame_cost.py` (the inputs of
+   the robots-per-device model, docs/performance.md) with shortened settings.
 The table lists each step's result, wall time and headline figures (a benchmark's lines with a median, or its
 markdown rows), with the machine and its load average before and after.
 
@@ -28,6 +29,7 @@ BENCHMARKS = (
     ("bench_registration", ["--reps", "8", "--frames", "20"]),
     ("bench_general", ["--frames", "20"]),
     ("bench_global_init", ["--repeats", "3"]),
+    ("bench_frame_cost", ["--frames", "60", "--warm-up", "15"]),  # launches and cost per frame: docs/performance.md
 )
 
 
