@@ -19,8 +19,11 @@ import numpy as np
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, so3_exp
+from ddvs_service.registration.config import RegistrationConfig
+from ddvs_service.registration.general_config import GeneralConfig
 from ddvs_service.registration.general_tracker import GeneralTracker
 from ddvs_service.registration.tracker import Tracker
+from evaluation.pairs import ONE_GAIN_HUBER
 from sim.freeflyer import render_view
 from sim.ground_truth import ground_truth
 from sim.surfaces import paper_saddle
@@ -67,9 +70,9 @@ def main() -> None:
     reference = render_view(saddle, tex, INTR, np.eye(4))[0]
     images = frames(args.frames)
     T0 = pose(so3_exp(0.05 * np.array([-0.1, -0.31, 1.04])), 0.05 * np.array([0.17, -0.11, 0.01]))
-    planar = Tracker.prepare(reference, ROI)
+    planar = Tracker.prepare(reference, ROI, RegistrationConfig(**ONE_GAIN_HUBER))
     planar.reset(ground_truth(saddle, INTR, np.eye(4), T0).G)
-    general = GeneralTracker.prepare(reference, ROI)
+    general = GeneralTracker.prepare(reference, ROI, GeneralConfig(base=RegistrationConfig(**ONE_GAIN_HUBER)))
     general.reset(planar.G)
     general.track(images[0])  # ρ* estimated here (multi-start, from the true G of the start), not timed
     tracks = {"planar Tracker": planar.track, "GeneralTracker": general.track}

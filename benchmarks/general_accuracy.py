@@ -10,8 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 
+from ddvs_service.registration.config import RegistrationConfig
 from ddvs_service.registration.general_config import GeneralConfig
 from evaluation.general_accuracy import measure, renderer
+from evaluation.pairs import ONE_GAIN_HUBER
 from sim.textures import load_texture
 
 
@@ -24,7 +26,8 @@ def main() -> None:
     report = {}
     for spec in args.renders:
         interpolation = "bspline" if spec.endswith("/bspline") else "keys"
-        rows = report[spec] = measure(renderer(spec, texture), GeneralConfig(interpolation=interpolation)).rows
+        rows = report[spec] = measure(renderer(spec, texture), GeneralConfig(
+            base=RegistrationConfig(**ONE_GAIN_HUBER), interpolation=interpolation)).rows
         worst = max(rows, key=lambda r: r["relative"])
         early = max(r["relative"] for r in rows if r["image"] <= 180)
         late = [r for r in rows if r["image"] >= 380]
