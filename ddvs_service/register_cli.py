@@ -13,6 +13,10 @@ Output keys: `H` (3×3, reference → current pixels, 0-based pixel centres, H[2
 `--defocus search` estimates R (`registration.defocus.register_defocus`, planar model only) and adds `defocus_px`
 and `defocus_trials` (`[radius, relative residual, converged]` per run) to the output.
 
+The engine settings default to the configuration schema's (`RegistrationConfig`: the servo's 3×3 gains and Tukey);
+from identity over a large motion a single gain with Huber's weight (`--gain-grid 1x1 --robust huber`) keeps the
+basin wider.
+
 `--init global` starts from the global initialiser (`registration.global_init`: any in-plane rotation, scale
 0.6–1.6, the ROI anywhere in the image) instead of a homography file; its summary is added under `global_init`.
 When it reports LOST nothing is refined: the output is `{"global_init": ..., "converged": false, "reason": ...}`
@@ -46,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--levels", type=int, default=engine.levels,
                         help="pyramid levels at most (default: %(default)s, as many as the ROI size allows)")
     parser.add_argument("--gain-grid", default="{}x{}".format(*engine.gain_grid), metavar="RxC",
-                        help="gain grid rows x cols (default %(default)s)")
+                        help="gain grid rows x cols (default %(default)s; from identity over a large motion, 1x1 "
+                             "with --robust huber keeps the basin wider, or start with --init global)")
     parser.add_argument("--robust", choices=("huber", "tukey", "none"), default=engine.robust,
                         help="M-estimator (default %(default)s)")
     parser.add_argument("--gamma", type=float, default=engine.gamma,

@@ -23,13 +23,12 @@ GainBound = Annotated[float, Field(gt=0.0, le=1000.0)]
 
 
 class RegistrationConfig(Settings):
-    """How `register` and `Tracker` minimise eq. (5). Each field's description and range is in its `Field`; the
-    reasons behind the defaults:
+    """How `register` and `Tracker` minimise eq. (5). Each field's description and range is in its `Field`; what
+    they mean in more depth, and the reasons behind the defaults:
 
     - `levels`: pyramid levels at most (1 = full resolution only); fewer are used when the ROI would shrink below
       `min_level_size` pixels on a side. The default (8) lets the ROI size choose: a 200×150 ROI gets 4 levels
       (coarsest 25×18 px), enough for 40 px + 20° + 15 % scale from identity.
-    - `max_iterations`: Gauss-Newton iterations per level.
     - `gain_grid`: (rows, cols) of the bilinear gain surface S of eq. (4) over the ROI; (1, 1) = one global gain.
       The default 3×3 comes from the robustness matrix (README "Robustness"): a single gain cannot represent a
       light ramp, and it leaves the servo farther from the goal at the stop even on clean frames.
@@ -42,8 +41,6 @@ class RegistrationConfig(Settings):
     - `robust`: M-estimator (Huber k = 1.345 σ, Tukey c = 4.685 σ, or plain least squares); σ = 1.4826 · median |r|,
       never below `scale_floor` grey levels. The default Tukey (robustness matrix): its zero weight beyond 4.685 σ
       keeps an occluder out of the fit; Huber's bounded weight lets it drag the fit until the servo is LOST.
-    - `min_inlier_ratio`: fraction of the ROI's pixels with |r| ≤ 4.685 σ required to call the result converged.
-    - `min_valid_ratio`: fraction of the ROI that must stay inside the current image, else the estimate diverged.
     - `step_tolerance_px`: convergence when the ROI corners are within this many full-resolution pixels of the
       fixed point at the finest level: the planar engine bounds the motion still to come by the geometric tail of
       its last steps (`solver.remaining_motion`, the Gauss-Newton skeleton of both engines);
@@ -62,9 +59,6 @@ class RegistrationConfig(Settings):
       the robustness runs: above 0.56 after the first step, up to 23 iterations under noise), so the frame that
       discovers a loss (the target hidden or out of reach) costs about twice this many iterations, not
       `max_iterations` at every level of both attempts.
-    - `predict_motion`: the `Tracker` starts a frame from the constant-velocity extrapolation of the last two good
-      estimates (falling back to the last estimate when that fails); off: from the last estimate.
-    - `max_step_fraction`: an update moving a corner by more than this fraction of the ROI size is scaled down.
     - `gamma`: the camera's response exponent. The engine compares irradiance `255 (I / 255)^γ`, not the encoded
       grey levels `I` (1 = as they are; ≈ 2.2 for sRGB-like cameras): defocus blurs irradiance, and compared in
       encoded levels a sharp reference and a defocused current image disagree around bright structure, which moves
