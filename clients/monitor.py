@@ -3,7 +3,9 @@ Foxglove view with `--foxglove` (`clients/foxglove_live.py`).
 
 Shown: the servo state (from `servo/status`, or `servo/state` before any status), the control error vector ε̄ and its
 norm (eq. 16, or 13 for DVS), the twist (m/s, rad/s, camera frame), arrival rates over the last `--window` seconds
-of camera frames, twists and status messages (Hz), the service's per-frame latency breakdown (ms) and counters, and
+of camera frames, twists and status messages (Hz) and, from the status counters, of frames the service rejected and
+frames superseded before the loop took them (a flood: frames/s), the service's per-frame latency breakdown (ms) and
+counters, and
 the secured router's audit of this robot (`<prefix>/<robot>/router/audit`, docs/security.md): messages denied per
 identity, sessions without a role, refused TLS and user/password handshakes.
 """
@@ -25,6 +27,9 @@ if TYPE_CHECKING:
 
 RATE_STREAMS = ("frames", "twists", "status")
 """The rates shown: camera frames (on any camera row: raw, rectified, compressed), twists, status messages."""
+COUNTER_RATES = ("rejected", "dropped")
+"""Status counters shown as rates (frames/s over the window): a flood of bad frames, or of frames faster than the
+loop."""
 CLEAR = "\x1b[H\x1b[2J"
 
 
@@ -39,6 +44,7 @@ class Monitor:
         self._lock = threading.Lock()
         self._arrivals: dict[str, collections.deque[float]] = {name: collections.deque() for name in RATE_STREAMS}
         self._status: dict[str, Any] | None = None
+        self._counts: collections.deque[tuple[float, dict[str, int]]] = collections.deque()  # (arrival, counters)
         self._latest: dict[str, dict[str, Any] | None] = {"state": None, "audit": None}  # newest JSON message
         self.status_received = threading.Event()
         from ddvs_service.protocol.keys import CAMERA_IMAGES
@@ -62,6 +68,9 @@ class Monitor:
                         self._status = json.loads(payload)
                     except ValueError:
                         return
+                    counters = self._status.get("counters") if isinstance(self._status, dict) else None
+                    if isinstance(counters, dict):
+                        self._counts.append((now, counters))
             if payload is not None:
                 self.status_received.set()
 
@@ -83,6 +92,18 @@ class Monitor:
             subscriber.undeclare()
         self._subscribers.clear()
 
+    def _counter_rates(self, now: float) -> dict[str, float]:
+        """Growth of the `COUNTER_RATES` counters over the window (frames/s), from the first and the newest status in
+        it (the newest status before the window included: rejections are reported about once a second)."""
+        counts = self._counts
+        while len(counts) > 1 and counts[1][0] < now - self.window:
+            counts.popleft()
+        if len(counts) < 2 or counts[-1][0] <= counts[0][0]:
+            return dict.fromkeys(COUNTER_RATES, 0.0)
+        (t0, first), (t1, last) = counts[0], counts[-1]
+        return {name: round(max(int(last.get(name, 0)) - int(first.get(name, 0)), 0) / (t1 - t0), 2)
+                for name in COUNTER_RATES}
+
     def snapshot(self) -> dict[str, Any]:
         """JSON-ready view: state, status `seq`, error, twist, rates (Hz over the window), latency (ms), counters,
         message, the Taichi backend of the service's kernels (`backend`), and the router's audit summary (`audit`;
@@ -94,6 +115,7 @@ class Monitor:
                 while arrivals and arrivals[0] < now - self.window:
                     arrivals.popleft()
                 rates[name] = round(len(arrivals) / self.window, 2)
+            rates.update(self._counter_rates(now))
             status, state, audit = self._status, self._latest["state"], self._latest["audit"]
         snap: dict[str, Any] = {"state": None, "seq": None, "has_reference": None, "error_norm": None, "error": None,
                                 "twist": None, "rates_hz": rates, "latency_ms": None, "counters": None,
@@ -141,6 +163,7 @@ def render(snap: dict[str, Any], title: str) -> str:
         f"twist        {_vector(snap['twist'])}   (m/s, rad/s, camera frame)",
         f"rates        frames {rates['frames']:6.1f} Hz   twists {rates['twists']:6.1f} Hz   "
         f"status {rates['status']:6.1f} Hz",
+        f"refused      rejected {rates['rejected']:6.1f} /s   superseded {rates['dropped']:6.1f} /s   (frames)",
         "latency ms   " + ("—" if not latency else "   ".join(f"{k} {v:.2f}" for k, v in latency.items())),
         "counters     " + ("—" if not counters else "   ".join(f"{k} {v}" for k, v in counters.items())),
         f"message      {snap['message'] or ''}",

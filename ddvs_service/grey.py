@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from ddvs_service.protocol.compressed import CompressedImage, decode_compressed_image
 from ddvs_service.protocol.errors import InconsistentMessage
 from ddvs_service.protocol.image_size import check_decoded_size, jpeg_header, png_header
-from ddvs_service.protocol.ros import ENCODINGS, Header, Image, decode_image
+from ddvs_service.protocol.ros import ENCODINGS, Image, decode_image
 
 _SCALE_16 = np.float32(255.0 / 65535.0)
 
@@ -80,11 +80,21 @@ def decode_compressed(msg: CompressedImage, max_bytes: int) -> NDArray:
     return np.asarray(pixels)
 
 
-def decode_frame(payload: bytes | memoryview, compressed: bool, max_bytes: int) -> tuple[Header, NDArray]:
-    """Header and grey levels (H, W) of one camera frame's CDR payload: a `sensor_msgs/Image`, or a
-    `sensor_msgs/CompressedImage` when `compressed`. Raises `ProtocolError` subclasses naming what is wrong."""
+def checked_frame(payload: bytes | memoryview, compressed: bool,
+                  max_bytes: int) -> tuple[Image | CompressedImage, tuple[int, int]]:
+    """The message of one camera frame's CDR payload and its size `(width, height)` in pixels, checked without
+    decoding any pixel: a `sensor_msgs/Image`, or a `sensor_msgs/CompressedImage` when `compressed` (its JPEG/PNG
+    header read, the decoded size it declares bounded by `max_bytes`). Cheap enough for a subscriber's callback;
+    `frame_pixels` then gives the grey levels. Raises `ProtocolError` subclasses naming what is wrong."""
     if compressed:
         msg = decode_compressed_image(payload, max_bytes)
-        return msg.header, decode_compressed(msg, max_bytes)
+        header = png_header(msg.data) if msg.codec == "png" else jpeg_header(msg.data)
+        check_decoded_size(header, max_bytes, f"compressed {msg.codec} frame")
+        return msg, (header.width, header.height)
     image = decode_image(payload, max_bytes)
-    return image.header, grey_image(image)
+    return image, (image.width, image.height)
+
+
+def frame_pixels(msg: Image | CompressedImage, max_bytes: int) -> NDArray:
+    """Grey levels (H, W) of a frame `checked_frame` returned (`grey_image`, `decode_compressed`)."""
+    return grey_image(msg) if isinstance(msg, Image) else decode_compressed(msg, max_bytes)

@@ -37,9 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 KEYS = Keys("ddvs", "montest")
 
 
-def _publish(port: int, stop: threading.Event, hz: float = 50.0) -> None:
+def _publish(port: int, stop: threading.Event, hz: float = 50.0, rejected_per_status: int = 0) -> None:
     """Status and twist at `hz`, frames at `hz / 2` (half of them JPEG CompressedImage on camera/image/compressed),
-    until `stop`."""
+    until `stop`; the `rejected` counter grows by `rejected_per_status` with each status."""
     with open_session(SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])) as session:
         names = ("servo_status", "servo_twist", "camera_image", "camera_image_compressed")
         pubs = {name: declare_publisher(session, KEYS, name) for name in names}
@@ -52,7 +52,8 @@ def _publish(port: int, stop: threading.Event, hz: float = 50.0) -> None:
                             error=[0.01, 0, 0, 0, 0, 0], error_norm=0.01, iterations=2, residual_rms=1.0,
                             inlier_ratio=0.9, twist=[0.001, 0, 0, 0, 0, 0.002],
                             latency_ms=Latency(decode=0.1, registration=5.0, control=0.3, publish=0.1, total=5.5),
-                            counters=Counters(frames=seq, dropped=0, rejected=0), backend="vulkan")
+                            counters=Counters(frames=seq, dropped=seq // 2, rejected=seq * rejected_per_status),
+                            backend="vulkan")
             pubs["servo_status"].put(dump(status))
             pubs["servo_twist"].put(encode_twist_stamped(TwistStamped(Header(Time.now(), "camera"), [0, 0, 0],
                                                                       [0, 0, 0])))
@@ -87,6 +88,29 @@ def test_snapshot_has_the_newest_status_and_the_arrival_rates():
     assert 15 <= rates["frames"] <= 26, rates
     text = render(snap, KEYS.base)
     assert "SERVOING" in text and "1.000e-02" in text and "registration 5.00" in text and "backend      vulkan" in text
+
+
+def test_a_flood_shows_as_rates_of_rejected_and_superseded_frames():
+    """A service under a flood reports ~100 rejected frames per status at 50 statuses/s (5000 frames/s) and one
+    superseded frame every other status: the monitor shows both as frames/s."""
+    port = free_port()
+    stop = threading.Event()
+    publisher = threading.Thread(target=_publish, args=(port, stop, 50.0, 100), daemon=True)
+    publisher.start()
+    try:
+        time.sleep(0.3)
+        with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
+            monitor = Monitor(session, KEYS, window=1.0)
+            assert monitor.status_received.wait(5.0)
+            time.sleep(1.2)
+            snap = monitor.snapshot()
+            monitor.close()
+    finally:
+        stop.set()
+        publisher.join(5)
+    rates = snap["rates_hz"]
+    assert 0.6 * 5000 <= rates["rejected"] <= 5000 * 1.1 and 0.6 * 25 <= rates["dropped"] <= 25 * 1.1, rates
+    assert "rejected" in render(snap, KEYS.base)
 
 
 def _once(port: int, timeout: float) -> subprocess.CompletedProcess:

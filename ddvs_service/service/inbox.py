@@ -5,14 +5,16 @@ Zenoh runs subscriber and queryable callbacks on its own threads; they must neit
 The loop thread sleeps on that condition (`wait`) instead of polling: a frame is handed over within one thread
 wake-up, not after up to one polling period, and an idle service costs no CPU.
 
-What is kept: the newest frame and the newest camera info only (a slow loop skips frames, never queues them, as
+What is kept: the newest accepted frame and the newest camera info only (a slow loop skips frames, never queues them, as
 `RingChannel(1)` would), and the pending commands in arrival order, at most `max_queries` (beyond that the oldest is
 dropped: its querier gets no reply and times out, and the Zenoh session never stalls behind a full queue).
 
-Frame bookkeeping happens here, where frames arrive, so it does not depend on when the loop looks: each frame gets
-its arrival index (1, 2, …) and arrival time (`time.monotonic()`, seconds), the time of the last arrival is what the
-watchdog measures, and a frame superseded before the loop took it is counted once, when it is superseded (`dropped`
-only grows).
+Frame bookkeeping happens here, where frames arrive, so it does not depend on when the loop looks. The subscriber
+checks each frame before handing it over (`service.robot`: it decodes, with the camera's size): a rejected frame is
+only counted (`reject`, with its reason) and never takes the place of the accepted frame waiting, so a flood of bad
+frames neither wakes the loop nor pushes good frames out. Each accepted frame gets its arrival index (1, 2, …) and
+arrival time (`time.monotonic()`, seconds), the time of the last accepted arrival is what the watchdog measures, and
+a frame superseded before the loop took it is counted once, when it is superseded (`dropped` only grows).
 
 One loop thread serves several robots (`service.process`): each robot has its own inbox, all of them notify one
 `Wakeup` (a shared condition), and `wait(timeout, others)` sleeps until any of them holds something. Each frame also
@@ -27,11 +29,12 @@ import time
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import zenoh
 
 SampleT = TypeVar("SampleT")
+FrameT = TypeVar("FrameT")
 
 
 @dataclass(frozen=True)
@@ -54,23 +57,27 @@ class Wakeup:
         self.turns = 0
 
 
-class Inbox:
-    """Latest frame, latest camera info and pending commands, filled by Zenoh callbacks, drained by one thread."""
+class Inbox(Generic[FrameT]):
+    """Latest accepted frame (of type `FrameT`: what the subscriber made of the sample), latest camera info and
+    pending commands, filled by Zenoh callbacks, drained by one thread; rejected inputs counted."""
 
     def __init__(self, max_queries: int = 64, wakeup: Wakeup | None = None) -> None:
         self.wakeup = wakeup or Wakeup()
         self._ready = self.wakeup.condition
-        self._frame: Arrival[zenoh.Sample] | None = None
+        self._frame: Arrival[FrameT] | None = None
         self._info: zenoh.Sample | None = None
         self._queries: deque[zenoh.Query] = deque(maxlen=max_queries)
         self._frames_received = 0
         self._frames_superseded = 0
+        self._rejected = 0
+        self._last_rejection = ""
         self._waiting_since: float | None = None  # arrival of the oldest frame not taken (superseded ones too)
         self._last_arrival_t = time.monotonic()
 
     # --- Zenoh callbacks (Zenoh's threads; never block) ---------------------------------------------------------
-    def on_frame(self, sample: zenoh.Sample) -> None:
-        t = time.monotonic()
+    def on_frame(self, sample: FrameT, t: float | None = None) -> None:
+        """An accepted frame that arrived at `t` (`time.monotonic()`; now when None)."""
+        t = time.monotonic() if t is None else t
         with self._ready:
             if self._frame is not None:
                 self._frames_superseded += 1
@@ -80,6 +87,12 @@ class Inbox:
                 self._waiting_since = t
             self._last_arrival_t = t
             self._ready.notify()
+
+    def reject(self, reason: str) -> None:
+        """Count an input rejected (any thread): nothing is stored, the loop is not woken."""
+        with self._ready:
+            self._rejected += 1
+            self._last_rejection = reason
 
     def on_info(self, sample: zenoh.Sample) -> None:
         with self._ready:
@@ -92,7 +105,7 @@ class Inbox:
             self._ready.notify()
 
     # --- the loop thread ----------------------------------------------------------------------------------------
-    def wait(self, timeout_s: float, others: Iterable[Inbox] = ()) -> None:
+    def wait(self, timeout_s: float, others: Iterable[Inbox[Any]] = ()) -> None:
         """Return as soon as anything is pending here or in `others` (inboxes of the same `Wakeup`), or after
         `timeout_s` seconds."""
         with self._ready:
@@ -123,7 +136,7 @@ class Inbox:
             info, self._info = self._info, None
             return info
 
-    def take_frame(self) -> Arrival[zenoh.Sample] | None:
+    def take_frame(self) -> Arrival[FrameT] | None:
         """The newest frame not yet taken, or None (frames superseded before being taken are dropped); a frame
         taken counts one turn of the loop (`Wakeup.turns`)."""
         with self._ready:
@@ -134,8 +147,14 @@ class Inbox:
             return frame
 
     @property
+    def rejections(self) -> tuple[int, str]:
+        """Inputs rejected so far (never decreases) and the reason of the newest rejection."""
+        with self._ready:
+            return self._rejected, self._last_rejection
+
+    @property
     def frames_received(self) -> int:
-        """Frames that arrived, taken or superseded."""
+        """Accepted frames that arrived, taken or superseded."""
         with self._ready:
             return self._frames_received
 
@@ -147,6 +166,6 @@ class Inbox:
 
     @property
     def last_arrival_t(self) -> float:
-        """`time.monotonic()` of the newest frame's arrival (of the inbox's creation before any frame)."""
+        """`time.monotonic()` of the newest accepted frame's arrival (of the inbox's creation before any frame)."""
         with self._ready:
             return self._last_arrival_t

@@ -49,7 +49,7 @@ class ServeProcess:
         self.fleet = fleet
         self.warmup = warmup
         self.wakeup = wakeup or Wakeup()
-        self.inbox = Inbox(wakeup=self.wakeup)  # the process's commands
+        self.inbox: Inbox[None] = Inbox(wakeup=self.wakeup)  # the process's commands (no frames)
         self.writer = BackgroundWriter(StateStore(fleet.base.state_dir))
         self.changes = FleetChanges(self.writer)
         self.robots: dict[str, RobotServo] = {}

@@ -2,22 +2,31 @@
 
 `RobotServo` holds everything that belongs to one robot; the process (`service.process`) owns the Zenoh session and
 the loop thread and calls in: `listen(session)` subscribes it to its camera (before the warm-up), `open(session)`
-declares its queryable, publishers and liveliness token, `handle_inputs()` runs its oldest pending command and
-adopts its newest camera info, `handle_frame(arrival)` serves one frame, `watchdog()` zeroes a standing twist when
-no frame *arrived* within `frame_timeout_s` (a slow frame while frames keep arriving is no timeout),
-`close(reason)` publishes a zero twist and undeclares everything. Zenoh callbacks only hand samples to the robot's
-`Inbox` and wake the loop.
+declares its queryable, publishers and liveliness token, `handle_inputs()` runs its oldest pending command, adopts
+its newest camera info and reports rejected inputs, `handle_frame(arrival)` serves one frame, `watchdog()` zeroes a
+standing twist when no valid frame *arrived* within `frame_timeout_s` (a slow frame while valid frames keep arriving
+is no timeout), `close(reason)` publishes a zero twist and undeclares everything. Zenoh callbacks only hand samples
+to the robot's `Inbox` and wake the loop; the camera's callback first decodes the frame and checks its size.
 
-Per frame: decode (grey levels of any supported encoding, a view of the payload for mono8; JPEG/PNG with
-`camera.transport` compressed: `ddvs_service.grey`) → rectify (raw frames of a camera whose info has distortion,
-maps computed once per camera info: `ddvs_service.rectification`; `camera.images` says whether frames are raw or
-rectified) → register → control → publish `servo/twist` (stamped with the
-frame's stamp, camera frame) and `servo/status`. Bad frames are rejected and counted; the robot keeps running, and
-so do the other robots of the process. Never stale: the twist of frame k is withheld (and counted `stale`) when
-frames k+1 and k+2 arrived before it could go out — a newer frame's twist is about to follow. Frames in IDLE (no
-reference, none pending) are not answered. State (reference, servo state, intrinsics, run-time configuration
-changes) is persisted atomically in the robot's own state directory by a background writer (`BackgroundWriter`: no
-fsync on the loop thread); a restarted robot resumes from it.
+Per frame: decode (in the camera's callback: the message, with the frame's size checked against the camera's; in the
+loop its grey levels, of any supported encoding, a view of the payload for mono8; JPEG/PNG with `camera.transport`
+compressed: `ddvs_service.grey`) → rectify (raw frames of a camera whose info has distortion, maps computed once per
+camera info: `ddvs_service.rectification`; `camera.images` says whether frames are raw or rectified) → register →
+control → publish `servo/twist` (stamped with the frame's stamp, camera frame) and `servo/status`. Bad frames are
+rejected and counted; the robot keeps running, and so do the other robots of the process. A rejected frame carries
+no image to servo on, so it changes nothing: no twist (the last valid frame's twist stands until a newer valid frame
+replaces it or the watchdog zeroes it, `frame_timeout_s` after the last valid frame), no per-frame status;
+rejections are reported at most once per `REJECTION_REPORT_S` (one WARNING and one Status naming how many and the
+newest reason), so a flood of bad frames costs the loop nothing and cannot interleave zero twists with the servo's.
+Never stale: the twist of frame k is withheld (and counted `stale`) when it would go out more than `frame_timeout_s`
+after the frame arrived and frames k+1 and k+2 arrived meanwhile — a newer frame's twist is about to follow. (Newer
+frames alone are no reason: a camera faster than the loop always has newer frames waiting, and its surplus frames
+are superseded in the inbox, so each twist answers the newest frame the loop could take.) Twist stamps on the topic
+never decrease: a zero twist that answers no frame (watchdog, `stop`, `reset`, shutdown) carries the newest stamp
+published (the camera's clock; 0 before any), and a frame older than that stamp gets no twist (counted `stale`).
+Frames in IDLE (no reference, none pending) are not answered. State (reference, servo state, intrinsics, run-time
+configuration changes) is persisted atomically in the robot's own state directory by a background writer
+(`BackgroundWriter`: no fsync on the loop thread); a restarted robot resumes from it.
 """
 
 from __future__ import annotations
@@ -34,10 +43,11 @@ import zenoh
 from numpy.typing import NDArray
 
 from ddvs_service.camera import Intrinsics
-from ddvs_service.grey import decode_frame
+from ddvs_service.grey import checked_frame, frame_pixels
 from ddvs_service.logs import fields
 from ddvs_service.protocol import (
     Command,
+    CompressedImage,
     Counters,
     Header,
     Image,
@@ -74,7 +84,8 @@ from kernels.backend import current as current_backend
 log = logging.getLogger("ddvs.serve")
 ZERO6 = np.zeros(6)
 RESUMING_STATES = (ServoState.SERVOING, ServoState.CONVERGED, ServoState.LOST)
-STALE_AFTER = 2  # a frame's twist is stale once this many newer frames have arrived
+STALE_AFTER = 2  # a late frame's twist is stale once this many newer frames have arrived
+REJECTION_REPORT_S = 1.0  # rejected inputs are logged and reported in a Status at most this often (seconds)
 NOT_PERSISTED = ("zenoh", "state_dir")  # configuration that comes from the command line, never from the state
 
 # a persisted state's reference, ROI, ρ* and last good estimate, adopted once the camera intrinsics are known
@@ -90,7 +101,7 @@ class RobotServo:
         self.config = self._with_persisted_changes(config)
         self.keys = Keys(self.config.prefix, self.config.robot, self.config.ros)
         self.pipeline = ServoPipeline(self.config, self._known_intrinsics(state))
-        self.counters = {"frames": 0, "rejected": 0, "stale": 0, "idle": 0}
+        self.counters = {"frames": 0, "stale": 0, "idle": 0}
         self._pending_reference: tuple[str, tuple[int, int, int, int] | None] | None = None
         self._resume_state: ServoState | None = None
         self._reference_stamp_ns: int | None = None
@@ -98,10 +109,12 @@ class RobotServo:
         self._info_key: tuple[Any, ...] | None = None  # what of that camera info the geometry depends on
         self._frame_id = "camera"  # the camera's frame (header.frame_id of its newest frame)
         self._zero_sent = True
+        self._twist_stamp = Time(0, 0)  # the newest stamp published on servo/twist
+        self._rejections_reported = (0, -math.inf)  # rejected count at the last report, and its time (monotonic s)
         self._seq = 0
         self._last_status: Status | None = None
         self._persisted_rho: list[float] = []
-        self.inbox = Inbox(wakeup=wakeup)
+        self.inbox: Inbox[CheckedFrame] = Inbox(wakeup=wakeup)
         self._ends: Endpoints | None = None  # the robot's subscriptions and publishers (`listen`, `open`)
         self._zenoh: _Declared | None = None
         self._restored_reference: _Restored | None = None
@@ -188,7 +201,7 @@ class RobotServo:
         if self._ends is not None:
             return
         ends = Endpoints(session, self.keys, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
-        ends.subscriber(self.config.camera.topic, self.inbox.on_frame)  # held until `ends.close()`
+        ends.subscriber(self.config.camera.topic, self._on_frame)  # held until `ends.close()`
         ends.subscriber("camera_info", self.inbox.on_info)
         self._ends = ends
 
@@ -218,7 +231,7 @@ class RobotServo:
         background re-acquisition ended."""
         try:
             if self._zenoh is not None:
-                self._publish_twist(ZERO6, Time.now())
+                self._publish_zero_twist()
                 self._publish_state(f"stopped: {reason}")
                 self._zenoh.token.undeclare()
                 self._residual.close()
@@ -244,9 +257,10 @@ class RobotServo:
         return min(max(due, 0.0), longest_s)
 
     def handle_inputs(self) -> None:
-        """The oldest pending command, then the newest camera info."""
+        """The oldest pending command, then the newest camera info, then the report of rejected inputs when due."""
         self._handle_query(self.inbox.take_query())
         self._handle_info(self.inbox.take_info())
+        self._report_rejections()
 
     # --- inputs -------------------------------------------------------------------------------------------------
     def _handle_info(self, sample: zenoh.Sample | None) -> None:
@@ -265,10 +279,25 @@ class RobotServo:
                 self._persist_state()
             self._geometry, self._info_key = geometry, key
         except (ProtocolError, ValueError) as exc:
-            self.counters["rejected"] += 1
-            log.warning("camera info rejected", extra=fields(error=str(exc)))
+            self.inbox.reject(f"camera info rejected: {exc}")
 
-    def handle_frame(self, arrival: Arrival[zenoh.Sample]) -> None:
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        """Zenoh's thread: decode the frame and check its size against the camera's; the inbox keeps it, or counts
+        it rejected."""
+        t = time.monotonic()
+        try:
+            msg, size = checked_frame(sample.payload.to_bytes(), self.config.camera.transport == "compressed",
+                                      self.config.max_frame_bytes)
+            intrinsics = self.pipeline.intrinsics
+            if intrinsics is not None and size != (intrinsics.width, intrinsics.height):
+                raise ValueError(f"frame is {size[0]}×{size[1]}; the camera is "
+                                 f"{intrinsics.width}×{intrinsics.height}")
+        except (ProtocolError, ValueError) as exc:
+            self.inbox.reject(f"frame rejected: {exc}")
+            return
+        self.inbox.on_frame(CheckedFrame(msg, time.monotonic() - t), t)
+
+    def handle_frame(self, arrival: Arrival[CheckedFrame]) -> None:
         """Serve one frame taken from this robot's inbox, with the newest camera info that arrived before it (a
         camera's info and image come on two topics, possibly over two links, in either order)."""
         self._handle_info(self.inbox.take_info())
@@ -276,12 +305,13 @@ class RobotServo:
             self.counters["idle"] += 1  # nothing to servo to: no twist, no status
             return
         t_taken, cpu_taken = time.monotonic(), time.process_time()
+        msg = arrival.sample.msg
+        header = msg.header
         try:
-            header, pixels = decode_frame(arrival.sample.payload.to_bytes(), self.config.camera.transport ==
-                                          "compressed", self.config.max_frame_bytes)
+            pixels = frame_pixels(msg, self.config.max_frame_bytes)
             image = pixels if self._geometry is None else self._geometry.frame(pixels)
         except (ProtocolError, ValueError) as exc:
-            self._reject_frame(f"frame rejected: {exc}")
+            self.inbox.reject(f"frame rejected: {exc}")
             return
         self._frame_id = header.frame_id
         t_decoded = time.monotonic()
@@ -290,20 +320,23 @@ class RobotServo:
         try:
             step = self.pipeline.step(image)
         except ValueError as exc:
-            self._reject_frame(f"frame rejected: {exc}")
+            self.inbox.reject(f"frame rejected: {exc}")
             return
         self.counters["frames"] += 1
         t_publish = time.monotonic()
         newer = self.inbox.frames_received - arrival.index
-        stale = newer >= STALE_AFTER
+        late = t_publish - arrival.t > self.config.frame_timeout_s and newer >= STALE_AFTER
+        stale = late or header.stamp.to_ns() < self._twist_stamp.to_ns()
         if stale:
             self.counters["stale"] += 1
-            step.message = f"stale: twist withheld, {newer} newer frames arrived while it was computed"
+            step.message = (f"stale: twist withheld, {newer} newer frames arrived in the "
+                            f"{t_publish - arrival.t:.3f} s since the frame did" if late else "stale: twist "
+                            "withheld, its frame is older than the newest twist published (stamps never decrease)")
         else:
             self._publish_twist(step.twist, header.stamp, header.frame_id)
         t_done = time.monotonic()
         latency = {
-            "decode": (t_decoded - t_taken) * 1e3,
+            "decode": (arrival.sample.decode_s + t_decoded - t_taken) * 1e3,
             "registration": step.timings_ms.get("registration", 0.0),
             "control": step.timings_ms.get("control", 0.0),
             "publish": (t_done - t_publish) * 1e3,
@@ -313,10 +346,18 @@ class RobotServo:
         self._publish_status(step, header.stamp.to_ns(), latency, stale)
         self._residual.offer(header, lambda: self.pipeline.residual(image))
 
-    def _reject_frame(self, message: str) -> None:
-        self.counters["rejected"] += 1
-        log.warning(message, extra=fields(rejected=self.counters["rejected"]))
-        self._publish_twist(ZERO6, Time.now())
+    def _report_rejections(self) -> None:
+        """One WARNING and one Status for the inputs rejected since the last report, at most once per
+        `REJECTION_REPORT_S` (the first one at once)."""
+        rejected, reason = self.inbox.rejections
+        reported, t_reported = self._rejections_reported
+        now = time.monotonic()
+        if rejected == reported or now - t_reported < REJECTION_REPORT_S:
+            return
+        self._rejections_reported = (rejected, now)
+        since = "" if math.isinf(t_reported) else f" in the last {now - t_reported:.1f} s"
+        message = f"{rejected - reported} input(s) rejected{since} ({rejected} in all), the newest: {reason}"
+        log.warning(message, extra=fields(robot=self.config.robot, rejected=rejected, newest=reason))
         state = self.pipeline.machine.state
         self._emit_status(Status(robot=self.config.robot, state=state.value, frame_stamp_ns=0, seq=self._next_seq(),
                                  error=[0.0] * 6, error_norm=0.0, iterations=0, residual_rms=0.0, inlier_ratio=0.0,
@@ -339,11 +380,11 @@ class RobotServo:
             log.error("reference from the next frame refused", extra=fields(error=str(exc)))
 
     def watchdog(self) -> None:
-        """A zero twist when no frame arrived within `frame_timeout_s` while a non-zero twist stands."""
+        """A zero twist when no valid frame arrived within `frame_timeout_s` while a non-zero twist stands."""
         if self._zero_sent or time.monotonic() - self.inbox.last_arrival_t < self.config.frame_timeout_s:
             return
         log.warning("no frame within the timeout: zero twist", extra=fields(timeout_s=self.config.frame_timeout_s))
-        self._publish_twist(ZERO6, Time.now())
+        self._publish_zero_twist()
 
     # --- commands -----------------------------------------------------------------------------------------------
     def _handle_query(self, query: zenoh.Query | None) -> None:
@@ -411,12 +452,12 @@ class RobotServo:
             machine.start()
         elif op == "stop":
             machine.stop()
-            self._publish_twist(ZERO6, Time.now())
+            self._publish_zero_twist()
         elif op == "reset":
             self.pipeline.clear_reference()
             self.writer.remove_reference()
             self._reference_stamp_ns = None
-            self._publish_twist(ZERO6, Time.now())
+            self._publish_zero_twist()
         self._persist_state()
         self._publish_state(f"{op} command")
         return self._snapshot().model_dump(mode="json")
@@ -443,7 +484,7 @@ class RobotServo:
         self._publish_state(f"reference set, roi {list(roi_used)}")
 
     # --- outputs ------------------------------------------------------------------------------------------------
-    def _publish_twist(self, twist: NDArray[np.float64], stamp: Time, frame_id: str = "camera") -> None:
+    def _publish_twist(self, twist: NDArray[np.float64], stamp: Time, frame_id: str) -> None:
         values = twist.tolist()  # plain floats: the checks below run on every frame
         if not all(map(math.isfinite, values)):
             log.error("non-finite twist replaced by zero", extra=fields(twist=values))
@@ -451,6 +492,12 @@ class RobotServo:
         msg = TwistStamped(Header(stamp, frame_id), np.array(values[:3]), np.array(values[3:]))
         self._pub["servo_twist"].put(encode_twist_stamped(msg))
         self._zero_sent = not any(values)
+        self._twist_stamp = stamp
+
+    def _publish_zero_twist(self) -> None:
+        """A zero twist that answers no frame, stamped with the newest stamp published (never earlier: a later
+        frame's twist would otherwise carry an older stamp than this one)."""
+        self._publish_twist(ZERO6, self._twist_stamp, self._frame_id)
 
     def _publish_status(self, step: StepResult, stamp_ns: int, latency: dict[str, float], stale: bool) -> None:
         """The frame's `Status`: every frame with `status_every_frame`, else on a state change or a stale twist."""
@@ -497,11 +544,20 @@ class RobotServo:
         return Counters.model_validate(self._counts())
 
     def _counts(self) -> dict[str, int]:
-        return {"dropped": self.inbox.frames_superseded, **self.counters}
+        return {"dropped": self.inbox.frames_superseded, "rejected": self.inbox.rejections[0], **self.counters}
 
     def _next_seq(self) -> int:
         self._seq += 1
         return self._seq
+
+
+@dataclass(frozen=True)
+class CheckedFrame:
+    """A camera frame as the subscriber accepted it: the decoded message (its pixels a view of the payload) and the
+    seconds its decoding and checks took."""
+
+    msg: Image | CompressedImage
+    decode_s: float
 
 
 @dataclass(frozen=True)
