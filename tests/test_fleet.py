@@ -246,10 +246,12 @@ def test_robots_of_one_process_servo_independently_and_fairly(tmp_path: Path) ->
             assert fair["frames"] >= 10, (name, fair)
             assert fair["max_waited_one_robot"] <= 1, (name, fair)
             assert fair["max_waited"] <= 2, (name, fair)
-            # every frame that reached the process was taken by the loop or superseded in its inbox, none lost
-            assert r["received"] == fair["frames"] + r["counters"]["dropped"] >= 150, (name, r)
+            # every valid frame that reached the process was taken by the loop or superseded in its inbox, none lost;
+            # a rejected one was counted as it arrived
+            assert r["received"] == fair["frames"] + r["counters"]["dropped"], (name, r)
+            assert r["received"] + r["counters"]["rejected"] >= 150, (name, r)
         assert max(r["fairness"]["max_waited"] for r in robots.values()) >= 1  # the flood did make frames wait
-        assert robots["c"]["counters"]["rejected"] > 0  # garbage not superseded before its turn
+        assert robots["c"]["counters"]["rejected"] >= 150 // 4  # every garbage frame, none superseded
         assert robots["a"]["counters"]["rejected"] == 0 and robots["b"]["counters"]["rejected"] == 0
         for name in ("a", "b"):
             lost = {s["message"] for s in ops[name].statuses if s["state"] == "LOST"}
