@@ -49,6 +49,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.bench_service import bench_config  # noqa: E402
 from benchmarks.rows import print_rows  # noqa: E402
 from ddvs_service.camera import Intrinsics  # noqa: E402 - after the path set-up for running as a script
 from ddvs_service.lie import se3_exp, so3_exp  # noqa: E402
@@ -284,10 +285,7 @@ def start_services(mode: str, robots: list[str], workdir: Path,
                    shm: bool) -> tuple[list[subprocess.Popen], dict[str, int]]:
     """The service process(es) and each robot's port; `shm`: the services' Zenoh shared memory (the default)."""
     config = workdir / "serve.json"
-    config.write_text(json.dumps({
-        "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
-        "registration": {"template_size": [200, 150]}, "zenoh": {"shm": shm},
-    }))
+    config.write_text(bench_config(zenoh=SessionConfig(shm=shm)).model_dump_json())
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
     common = [sys.executable, "-m", "ddvs.cli", "serve", "--config", str(config), "--log-level", "ERROR"]
     if mode == "shared":

@@ -41,6 +41,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -64,9 +65,16 @@ from ddvs_service.protocol import (  # noqa: E402 - after the path set-up for ru
     open_session,
 )
 from ddvs_service.protocol.upload import encode_upload  # noqa: E402
+from ddvs_service.service.config import IntrinsicsConfig, RegistrationSettings, ServiceConfig  # noqa: E402
 from sim.textures import texture_path  # noqa: E402
 
 W, H, F = 320, 240, 420.0
+
+
+def bench_config(**settings: Any) -> ServiceConfig:
+    """The service configuration of the benchmarks: this camera's intrinsics, a 200×150 template, and `settings`."""
+    return ServiceConfig(intrinsics=IntrinsicsConfig(fx=F, fy=F, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H),
+                         registration=RegistrationSettings(template_size=(200, 150)), **settings)
 WARM_UP_FRAMES = 30
 WARM_UP_LIMIT_S = 120.0
 DATASET = texture_path("boat")
@@ -216,13 +224,9 @@ def summarise(rate: float, hogs: int, run: dict, statuses: list[dict], arrival_m
 def measure(rate: float, seconds: float, hogs: int, realtime_priority: int | None, watcher: str = "none") -> dict:
     port = free_port()
     state = tempfile.mkdtemp(prefix="ddvs-bench-")
-    config = {
-        "robot": "bench", "state_dir": state, "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
-        "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
-        "registration": {"template_size": [200, 150]},
-    }
     cfg = Path(state) / "serve.json"
-    cfg.write_text(json.dumps(config))
+    cfg.write_text(bench_config(robot="bench", state_dir=Path(state),
+                                zenoh=SessionConfig(listen=[f"tcp/127.0.0.1:{port}"])).model_dump_json())
     env = {k: v for k, v in os.environ.items() if not k.startswith("DDVS_ZENOH_")}
     realtime = ["--realtime-priority", str(realtime_priority)] if realtime_priority else []
     service = subprocess.Popen([sys.executable, "-m", "ddvs.cli", "serve", "--config", str(cfg),

@@ -44,7 +44,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_service import F, H, W, command, frame_at, free_port, scene  # noqa: E402
+from benchmarks.bench_service import H, W, bench_config, command, frame_at, free_port, scene  # noqa: E402
 from benchmarks.rows import print_rows  # noqa: E402
 from ddvs_service.protocol import (  # noqa: E402
     Header,
@@ -288,11 +288,9 @@ def main() -> None:
     port = free_port()
     state = tempfile.mkdtemp(prefix="ddvs-boot-")
     config = Path(state) / "serve.json"
-    config.write_text(json.dumps({
-        "robot": "boot", "state_dir": state, "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]},
-        "intrinsics": {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2, "width": W, "height": H},
-        "registration": {"template_size": [200, 150], "gain_grid": args.gain_grid, "model": args.model},
-    }))
+    base = bench_config(robot="boot", state_dir=Path(state), zenoh=SessionConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+    config.write_text(base.merged({"registration": {"gain_grid": args.gain_grid, "model": args.model}})
+                      .model_dump_json())
     camera = Camera()
     prepare(config, port, camera)
     if args.phases:
