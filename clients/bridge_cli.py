@@ -30,14 +30,15 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging("INFO")
     session_config = session_config_from_args(args)
-    if not check_robot_covered(Keys(args.prefix, args.robot), session_config.zenoh_config):
+    keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
+    if not check_robot_covered(keys, session_config.zenoh_config):
         return 2  # logged: the router configuration beside ours would drop everything of this robot
     bridge = load_bridge(args.config)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config) as session:
-        node = BridgeNode(bridge, session, Keys(args.prefix, args.robot, ros_settings_from_args(args)), args.rate)
+        node = BridgeNode(bridge, session, keys, args.rate)
         try:
             node.run(stop)
         finally:

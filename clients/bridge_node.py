@@ -39,6 +39,7 @@ from ddvs_service.protocol import (
 from ddvs_service.protocol.endpoints import Endpoints
 from ddvs_service.protocol.guard import CommandGuard, CommandLimits
 from ddvs_service.protocol.ros import Float64MultiArray, encode_float64_multi_array
+from ddvs_service.protocol.ros_graph import BRIDGE_NODE
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ class BridgeNode:
         if not rate > 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate}")
         self.bridge, self.period, self.ros = bridge, 1.0 / rate, keys.rmw
-        self._endpoints = Endpoints(session, keys, "ddvs_bridge")
+        self._endpoints = Endpoints(session, keys, BRIDGE_NODE)
         self._twists = self._endpoints.latest("servo_twist")
         self._joints = self._endpoints.latest("arm_joint_states")
         self._publisher = self._endpoints.publisher("arm_velocity_commands" if self.ros else "arm_joint_velocity")

@@ -163,6 +163,7 @@ class CameraPublisher:
                  jpeg_quality: int = 90) -> None:
         from ddvs_service.protocol import Header, Time
         from ddvs_service.protocol.endpoints import Endpoints
+        from ddvs_service.protocol.ros_graph import CAMERA_NODE
         from ddvs_service.rectification import camera_geometry
 
         if encoding not in ENCODINGS:
@@ -174,7 +175,7 @@ class CameraPublisher:
         info = calibration.camera_info(Header(Time(0, 0), frame_id))
         self._rectifier = camera_geometry(info, rectified=False).rectifier if publish == "rect" else None
         row = "camera_image" if publish == "raw" else "camera_image_rect"
-        self._endpoints = Endpoints(session, keys, "ddvs_camera")  # graph tokens and attachments in ROS 2 mode
+        self._endpoints = Endpoints(session, keys, CAMERA_NODE)  # graph tokens and attachments in ROS 2 mode
         self._image = self._endpoints.publisher(row if compress is None else f"{row}_compressed")
         self._info = self._endpoints.publisher("camera_info")
         self.published = 0

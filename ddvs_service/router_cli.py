@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
             if time.monotonic() - published >= AUDIT_PERIOD_S:
                 published = time.monotonic()
                 for base, publisher in publishers.items():
-                    publisher.put(json.dumps({"router": zid, "robot": base, **audit.report(base)}))
+                    others = [other for other in robots if other != base]
+                    publisher.put(json.dumps({"router": zid, "robot": base, **audit.report(base, others)}))
         for publisher in publishers.values():
             publisher.undeclare()
     return 0

@@ -10,6 +10,11 @@ Writes into `OUT/` (docs/security.md, "Securing a robot"):
 - every configuration (`protocol/security.py::write_configs`): `router-mtls.json5`, `router-password.json5` and per
   role `<role>-mtls.json5`, `<role>-password.json5` (with its password, owner-only), all for robot `<prefix>/<NAME>`.
 
+ROS 2 mode (docs/ros2.md): `--ros-domain-id N [--ros-namespace NS] [--ros-topic ROW:=NAME ...]`, as the nodes will
+run, adds the rules for the rmw_zenoh keys of the ROS topics, the service node's Trigger services (served by the
+service, called by the operator) and the ROS graph (each role holds the graph tokens of its own nodes, every role
+watches the domain's); the JSON keys stay as in plain mode.
+
 A fleet: `--robot A --robot B`, the robots `ddvs serve --robots A B` serves; each role gets the same grants on every
 robot's keys, and the service and the operator the command key of the process (`<prefix>/serve/<process>/command`,
 `--process`, default: the first robot, as `ddvs serve` names it).
@@ -29,6 +34,8 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ddvs_service.protocol.ros_cli import add_ros_arguments
+
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     init = sub.add_parser("init", help="certificates, passwords and every Zenoh configuration for a robot or a fleet",
                           description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -51,6 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="observers may not read camera frames nor the reference image")
     init.add_argument("--configs-only", action="store_true",
                       help="write the configurations only (placeholder passwords, no certificates)")
+    add_ros_arguments(init)  # rules for the nodes' ROS 2 mode: give the options the nodes will run with
 
 
 def _passwords(path: Path, users: list[str]) -> dict[str, str]:
@@ -87,6 +95,7 @@ def _refuse_another_robots(out: Path, scope: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from ddvs_service.protocol.keys import Keys
     from ddvs_service.protocol.pki import DEFAULT_ROUTER_NAMES, issue_certificates
+    from ddvs_service.protocol.ros_cli import ros_settings_from_args
     from ddvs_service.protocol.security import ROLES, Endpoint, Fleet, identity_name, write_configs
 
     roles = [r for item in args.roles or [",".join(ROLES)] for r in item.replace(",", " ").split()]
@@ -96,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"roles {unknown or roles}: expected some of {', '.join(ROLES)}")
         if not args.robots:
             raise ValueError("no robot: give --robot NAME (repeated for a fleet: --robot A --robot B)")
-        fleet = Fleet(tuple(Keys(args.prefix, robot) for robot in args.robots), args.process or "")
+        ros = ros_settings_from_args(args)
+        fleet = Fleet(tuple(Keys(args.prefix, robot, ros) for robot in args.robots), args.process or "")
         host = Endpoint.parse(args.router).host
         cert_dir = args.certs_dir or args.out_dir.rstrip("/")
         out = Path(args.out_dir)
@@ -118,6 +128,9 @@ def run(args: argparse.Namespace) -> int:
     configs = args.out_dir.rstrip("/")
     nodes = (f"`--mode client --connect {args.router} --zenoh-config {configs}/<role>-mtls.json5 --prefix "
              f"{args.prefix}")
+    if ros.enabled:
+        remaps = "".join(f" --ros-topic {row}:={name}" for row, name in ros.topics.items())
+        nodes += f" --ros-domain-id {ros.domain_id} --ros-namespace {ros.namespace}{remaps}"
     if len(fleet.robots) == 1 and fleet.process == fleet.robots[0].robot:
         nodes += f" --robot {fleet.robots[0].robot}`"
     else:

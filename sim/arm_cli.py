@@ -42,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging("INFO")
     session_config = session_config_from_args(args)
-    if not check_robot_covered(Keys(args.prefix, args.robot), session_config.zenoh_config):
+    keys = Keys(args.prefix, args.robot, ros_settings_from_args(args))
+    if not check_robot_covered(keys, session_config.zenoh_config):
         return 2  # logged: the router configuration beside ours would drop everything of this robot
     config = load_scene_config(args.config)
     settings = ArmNodeSettings(args.clock, args.fps, args.deadman, args.lockstep_timeout, args.frames)
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(session_config) as session:
-        node = ArmNode(sim, session, Keys(args.prefix, args.robot, ros_settings_from_args(args)), settings)
+        node = ArmNode(sim, session, keys, settings)
         try:
             node.run(stop)
         finally:

@@ -44,6 +44,7 @@ from ddvs_service.protocol import (
 )
 from ddvs_service.protocol.endpoints import Endpoints
 from ddvs_service.protocol.guard import CommandGuard, CommandLimits
+from ddvs_service.protocol.ros_graph import ARM_SIM_NODE
 from sim.arm import ArmSim
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class ArmNode:
             raise ValueError("lockstep needs the plain ddvs protocol: ROS 2 velocity commands (Float64MultiArray) "
                              "carry no stamp to match a frame; use the realtime clock in ROS 2 mode")
         self.sim, self.keys, self.settings = sim, keys, settings
-        self._endpoints = Endpoints(session, keys, "ddvs_arm_sim")
+        self._endpoints = Endpoints(session, keys, ARM_SIM_NODE)
         self._pub = {name: self._endpoints.publisher(name) for name in (
             "camera_image", "camera_info", "arm_joint_states", "arm_ground_truth")}
         self._commands = self._endpoints.latest("arm_velocity_commands" if keys.rmw else "arm_joint_velocity")

@@ -10,7 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +64,14 @@ def audit_lines(log: Path) -> list[dict[str, Any]]:
 
 def open_role(out: Path, role: str) -> zenoh.Session:
     return zenoh.open(zenoh.Config.from_file(str(out / f"{role}-mtls.json5")))
+
+
+def open_roles(stack: ExitStack, out: Path, *roles: str) -> list[zenoh.Session]:
+    """A session per role of `roles` (its `<role>-mtls.json5` in `out`), closed when `stack` closes."""
+    sessions = [open_role(out, role) for role in roles]
+    for session in sessions:
+        stack.callback(session.close)
+    return sessions
 
 
 def newest_report(inbox: Inbox, predicate: Any, timeout: float = REPORT_WAIT_S) -> dict[str, Any]:

@@ -12,6 +12,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ import numpy as np
 import zenoh
 from conftest import free_port
 from test_security import Inbox
-from test_security_audit import audit_lines, ddvs_router, open_role
+from test_security_audit import audit_lines, ddvs_router, open_roles
 from test_service_node import Service, scene, service_config, shifted
 
 from ddvs_service.protocol import (
@@ -49,6 +50,19 @@ def ask(session: zenoh.Session, key: str, timeout: float = 2.0, **command: Any) 
     return None
 
 
+def send_frame(put: Callable[[bytes], object], statuses: list[bytes], twists: list[bytes], image: np.ndarray,
+               n: int) -> dict[str, Any]:
+    """Publish frame `n` (mono8, stamped n × 33 ms) with `put`; the status it produced, once its twist came back too
+    (`statuses`, `twists`: the payloads received so far)."""
+    n_status, n_twist = len(statuses), len(twists)
+    put(encode_image(image_from_array(image, "mono8", Header(Time.from_ns(n * 33_000_000), "cam"))))
+    until = time.monotonic() + 30.0
+    while len(statuses) <= n_status or len(twists) <= n_twist:
+        assert time.monotonic() < until, f"frame {n} not answered"
+        time.sleep(0.005)
+    return dict(json.loads(statuses[-1]))
+
+
 def served_robots(reply: Reply | None) -> list[str]:
     assert reply is not None and reply.ok and reply.data is not None, reply
     return [robot["robot"] for robot in reply.data["robots"]]
@@ -64,9 +78,7 @@ def test_a_secured_fleet_process_serves_its_robots_and_answers_only_the_operator
     log = tmp_path / "router.log"
     with ExitStack() as stack:
         stack.enter_context(ddvs_router(out, endpoint, log))
-        operator, observer, plant = (open_role(out, role) for role in ("operator", "observer", "plant"))
-        for session in (operator, observer, plant):
-            stack.callback(session.close)
+        operator, observer, plant = open_roles(stack, out, "operator", "observer", "plant")
         service = Service(config, tmp_path, "--robots", *SERVED)
         stack.callback(service.stop)  # on failure; a second stop returns at once
 
@@ -93,14 +105,7 @@ def test_a_secured_fleet_process_serves_its_robots_and_answers_only_the_operator
         stack.callback(frames.undeclare)
 
         def send(image: np.ndarray, n: int) -> dict[str, Any]:
-            """Publish frame `n`; the status it produced once its twist came back too."""
-            n_status, n_twist = len(statuses.payloads), len(twists.payloads)
-            frames.put(encode_image(image_from_array(image, "mono8", Header(Time.from_ns(n * 33_000_000), "cam"))))
-            until = time.monotonic() + 30.0
-            while len(statuses.payloads) <= n_status or len(twists.payloads) <= n_twist:
-                assert time.monotonic() < until, f"frame {n} of {robot_b.base} not answered"
-                time.sleep(0.005)
-            return json.loads(statuses.payloads[-1])
+            return send_frame(frames.put, statuses.payloads, twists.payloads, image, n)
 
         time.sleep(0.5)  # the subscriptions and the publisher reach the router
         reply = ask(operator, robot_b.servo_command, op="set_reference", source="next_frame")

@@ -23,8 +23,8 @@ Log lines (logger `ddvs.audit`): `access denied` (fields `identity`, `zid`, `act
 denials so far, and `suppressed` = denials not logged individually since the last line), `session without a role`
 (`identity`, `zid`), `TLS handshake refused` (`detail`), `authentication refused` (`detail`: `Invalid password` or
 `Invalid user`). At most `rate` lines per second on average (bursts of `burst`); every denial is counted whether
-logged or not. `Audit.report(base)` is the JSON summary `ddvs router`
-publishes on `<base>/router/audit` (`audit_key`) and `ddvs monitor` shows.
+logged or not. `Audit.report(base, others)` is the JSON summary `ddvs router` publishes on `<base>/router/audit`
+(`audit_key`) and `ddvs monitor` shows.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -217,14 +217,16 @@ class Audit:
         if suppressed:
             log.warning("access denials not logged individually", extra={"fields": {"suppressed": suppressed}})
 
-    def report(self, base: str | None = None) -> dict[str, Any]:
-        """JSON-ready counts: `denied` per identity (only denials on keys of robot `base`, e.g. `ddvs/robot0`, when
-        given), `no_role` sessions per identity, `tls_refused` and `auth_refused` (user/password) handshakes (those
-        three are router-wide)."""
+    def report(self, base: str | None = None, others: Sequence[str] = ()) -> dict[str, Any]:
+        """JSON-ready counts: `denied` per identity (when robot `base`, e.g. `ddvs/robot0`, is given: denials on its
+        keys and on keys of none of the router's `others` robots — the ROS 2 mode's rmw_zenoh keys, Trigger services
+        and graph tokens carry no robot), `no_role` sessions per identity, `tls_refused` and `auth_refused`
+        (user/password) handshakes (those three are router-wide)."""
         with self._lock:
             denied: Counter[str] = Counter()
             for denial, n in self.denials.items():
-                if base is None or _key_matches(denial.key, base):
+                if (base is None or _key_matches(denial.key, base)
+                        or not any(_key_matches(denial.key, other) for other in others)):
                     denied[denial.identity] += n
             return {"denied": dict(denied), "no_role": dict(self.no_role), "tls_refused": self.refused["tls_refused"],
                     "auth_refused": self.refused["auth_refused"]}

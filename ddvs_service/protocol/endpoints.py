@@ -30,11 +30,18 @@ from ddvs_service.protocol.errors import ProtocolError
 from ddvs_service.protocol.keys import TOPICS, Keys
 from ddvs_service.protocol.rmw import TYPE_HASHES, RmwAttachment, RmwPublisherIdentity, dds_type_name, rmw_zenoh_key
 from ddvs_service.protocol.ros import decode_trigger_request, encode_trigger_response
-from ddvs_service.protocol.ros_graph import ADMIN_SPACE, SERVICE_QOS, EntityKind, GraphEntity, GraphNode, parse_token
+from ddvs_service.protocol.ros_graph import (
+    ADMIN_SPACE,
+    SERVICE_QOS,
+    TRIGGER,
+    EntityKind,
+    GraphEntity,
+    GraphNode,
+    parse_token,
+)
 from ddvs_service.protocol.session import LatestSubscriber, declare_publisher
 
 log = logging.getLogger("ddvs.endpoints")
-TRIGGER = "std_srvs/srv/Trigger"
 
 
 class Publisher:

@@ -26,6 +26,9 @@ import xxhash
 import zenoh
 
 ADMIN_SPACE = "@ros2_lv"
+SERVO_NODE, CAMERA_NODE, BRIDGE_NODE, ARM_SIM_NODE = "ddvs_servo", "ddvs_camera", "ddvs_bridge", "ddvs_arm_sim"
+"""The default ROS node names of `ddvs serve`, `ddvs camera`, `ddvs bridge` and `ddvs sim arm` (docs/ros2.md)."""
+TRIGGER = "std_srvs/srv/Trigger"
 EntityKind = Literal["NN", "MP", "MS", "SS", "SC"]
 ENTITY_KINDS: tuple[EntityKind, ...] = ("NN", "MP", "MS", "SS", "SC")
 _KIND_OF: dict[str, EntityKind] = {kind: kind for kind in ENTITY_KINDS}  # a token's chunk → its kind

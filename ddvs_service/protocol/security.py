@@ -48,6 +48,15 @@ from typing import Any
 from ddvs_service.protocol.audit import audit_key
 from ddvs_service.protocol.control import process_command_key
 from ddvs_service.protocol.keys import CAMERA_IMAGES, TOPICS, Keys
+from ddvs_service.protocol.rmw import rmw_zenoh_key
+from ddvs_service.protocol.ros_graph import (
+    ADMIN_SPACE,
+    ARM_SIM_NODE,
+    BRIDGE_NODE,
+    CAMERA_NODE,
+    SERVO_NODE,
+    TRIGGER,
+)
 from ddvs_service.protocol.session import SessionConfig
 
 ROLES = ("service", "plant", "bridge", "operator", "observer")
@@ -63,7 +72,10 @@ class Grants:
     """What one role may do, as entries of `TOPICS`: `publish`/`subscribe` samples, `serve`/`query` queryables,
     hold (`tokens`) or `watch` liveliness tokens. `PROCESS_COMMAND` among `serve`/`query` names the command key of
     the `ddvs serve` process serving the robots (`<prefix>/serve/<process>/command`: add/remove/list robots; the
-    process is named after its first robot unless named otherwise: `Fleet`)."""
+    process is named after its first robot unless named otherwise: `Fleet`). In ROS 2 mode only (`Keys.rmw`; nothing
+    otherwise): `ROS_SERVICES` among `serve`/`query` names the service node's `std_srvs/srv/Trigger` services,
+    `ROS_NODE_TOKENS` among `tokens` the graph tokens of the role's own ROS nodes (`ROLE_NODES`), `ROS_GRAPH` among
+    `watch` every graph token of the ROS domain."""
 
     publish: tuple[str, ...] = ()
     subscribe: tuple[str, ...] = ()
@@ -74,25 +86,35 @@ class Grants:
 
 
 PROCESS_COMMAND = "process_command"
+ROS_SERVICES = "ros_services"
+ROS_NODE_TOKENS = "ros_node_tokens"
+ROS_GRAPH = "ros_graph"
+ROLE_NODES: dict[str, tuple[str, ...]] = {
+    "service": (SERVO_NODE,), "plant": (ARM_SIM_NODE, CAMERA_NODE), "bridge": (BRIDGE_NODE,),
+}
+"""The ROS node names (rmw_zenoh graph, ROS 2 mode) each role's programs declare."""
 _SAMPLE_TOPICS = tuple(n for n in TOPICS if n not in ("servo_command", "liveliness"))
 
 ROLE_GRANTS: dict[str, Grants] = {
     "service": Grants(
         publish=("servo_twist", "servo_status", "servo_config", "servo_state", "servo_reference", "servo_residual"),
         subscribe=(*CAMERA_IMAGES, "camera_info"),
-        serve=("servo_command", PROCESS_COMMAND),
-        tokens=("liveliness",),
+        serve=("servo_command", PROCESS_COMMAND, ROS_SERVICES),
+        tokens=("liveliness", ROS_NODE_TOKENS),
+        watch=(ROS_GRAPH,),
     ),
     "plant": Grants(
         publish=(*CAMERA_IMAGES, "camera_info", "arm_joint_states", "arm_ground_truth"),
         subscribe=("arm_joint_velocity", "arm_velocity_commands", "servo_twist"),
+        tokens=(ROS_NODE_TOKENS,), watch=(ROS_GRAPH,),
     ),
     "bridge": Grants(
         publish=("arm_joint_velocity", "arm_velocity_commands"), subscribe=("servo_twist", "arm_joint_states"),
-        watch=("liveliness",),
+        tokens=(ROS_NODE_TOKENS,), watch=("liveliness", ROS_GRAPH),
     ),
-    "operator": Grants(subscribe=_SAMPLE_TOPICS, query=("servo_command", PROCESS_COMMAND), watch=("liveliness",)),
-    "observer": Grants(subscribe=_SAMPLE_TOPICS, watch=("liveliness",)),
+    "operator": Grants(subscribe=_SAMPLE_TOPICS, query=("servo_command", PROCESS_COMMAND, ROS_SERVICES),
+                       watch=("liveliness", ROS_GRAPH)),
+    "observer": Grants(subscribe=_SAMPLE_TOPICS, watch=("liveliness", ROS_GRAPH)),
 }
 
 
@@ -186,12 +208,34 @@ def _rule(rule_id: str, flow: str, messages: Sequence[str], keys: Sequence[str])
             "key_exprs": sorted(set(keys))}
 
 
+def _ros_keys(name: str, keys: Keys, role: str) -> list[str]:
+    """The key expressions of ROS 2 entry `name` (`ROS_SERVICES`, `ROS_NODE_TOKENS`, `ROS_GRAPH`) for `role` of one
+    robot; none in plain mode. Graph tokens are `@ros2_lv/<domain>/<zid>/<nid>/<id>/<kind>/<enclave>/<namespace>/
+    <node>/...` (`ros_graph`): a role's own are those of its node names, in any namespace, from any session."""
+    domain = keys.ros.domain_id
+    if domain is None:
+        return []
+    if name == ROS_GRAPH:
+        return [f"{ADMIN_SPACE}/{domain}/**"]
+    if name == ROS_NODE_TOKENS:
+        return [f"{ADMIN_SPACE}/{domain}/{'*/' * 6}{node}/**" for node in ROLE_NODES.get(role, ())]
+    return [rmw_zenoh_key(domain, f"{keys.ros.namespace.rstrip('/')}/{SERVO_NODE}/*", TRIGGER)]
+
+
 def _role_rules(role: str, grants: Grants, fleet: Fleet) -> list[dict[str, Any]]:
     """The allow rules of one role (ids `<role>/<what>`), flows seen from the router; each names the keys of every
     robot of `fleet` (the process's command key once)."""
     def k(names: Sequence[str]) -> list[str]:
-        return [fleet.command_key if name == PROCESS_COMMAND else keys.key(name)
-                for keys in fleet.robots for name in names]
+        out = []
+        for keys in fleet.robots:
+            for name in names:
+                if name == PROCESS_COMMAND:
+                    out.append(fleet.command_key)
+                elif name in (ROS_SERVICES, ROS_NODE_TOKENS, ROS_GRAPH):
+                    out.extend(_ros_keys(name, keys, role))
+                else:
+                    out.append(keys.key(name))
+        return out
 
     pub, sub = k(grants.publish), k(grants.subscribe)
     if role in AUDIT_READERS:  # published by the router itself (`ddvs router`), so no role writes it
@@ -503,12 +547,6 @@ def sibling_access_controls(zenoh_config: str | Path | None) -> dict[Path, dict[
     return sections
 
 
-def sibling_router_grants(zenoh_config: str | Path | None) -> dict[Path, set[str]]:
-    """The robots granted by each router configuration beside a node's Zenoh configuration file
-    (`sibling_access_controls`)."""
-    return {path: robots_granted(section) for path, section in sibling_access_controls(zenoh_config).items()}
-
-
 def configured_scopes(out_dir: str | Path) -> set[str]:
     """The scopes (`Fleet.scope`) whose identities (`<role>@<scope>`) the router configurations in `out_dir` name."""
     return {name.split("@", 1)[1] for section in sibling_access_controls(Path(out_dir) / "-").values()
@@ -516,15 +554,41 @@ def configured_scopes(out_dir: str | Path) -> set[str]:
             for name in (*(subject.get("cert_common_names") or []), *(subject.get("usernames") or [])) if "@" in name}
 
 
+def _allowed_keys(sections: Mapping[Path, Mapping[str, Any]]) -> set[str]:
+    """Every key expression the allow rules of these `access_control` sections name."""
+    return {key for section in sections.values() for rule in section.get("rules", [])
+            for key in rule.get("key_exprs", [])}
+
+
 def check_robot_covered(keys: Keys, zenoh_config: str | Path | None, logger: logging.Logger | None = None) -> bool:
     """False, with the reason logged as an error (`logger`, default `ddvs.security`), when router configurations
-    beside the node's Zenoh configuration file grant nothing to robot `keys.base`: that router would silently drop
-    every message of this robot. True when they grant it or when there is none in sight."""
-    grants = sibling_router_grants(zenoh_config)
-    if not grants or any(keys.base in robots for robots in grants.values()):
+    beside the node's Zenoh configuration file grant nothing to robot `keys.base`, or in ROS 2 mode (`keys.rmw`) do not
+    name the rmw_zenoh key of each of its ROS topics (rules made without `--ros-domain-id`, or for another domain,
+    namespace or remapping): that router would silently drop every message of this robot, or of its ROS topics. True
+    when they grant it or when there is none in sight."""
+    log = logger or logging.getLogger("ddvs.security")
+    sections = sibling_access_controls(zenoh_config)
+    grants = {path: robots_granted(section) for path, section in sections.items()}
+    if not grants:
         return True
+    if any(keys.base in robots for robots in grants.values()):
+        allowed = _allowed_keys(sections)
+        missing = [keys.key(row) for row, spec in TOPICS.items() if keys.rmw and spec.ros_type is not None
+                   and keys.key(row) not in allowed]
+        if not missing:
+            return True
+        ros = keys.ros
+        remaps = "".join(f" --ros-topic {row}:={name}" for row, name in ros.topics.items())
+        log.error(f"ROS 2 mode (domain {ros.domain_id}, namespace {ros.namespace!r}) of robot {keys.base!r} is not "
+                  f"covered by the access control of {', '.join(str(p) for p in sections)} (beside {zenoh_config}): "
+                  f"it names none of {missing}, so that router would drop every ROS topic of this node. Make rules "
+                  f"for this ROS set-up: `ddvs security init --robot {keys.robot} --prefix {keys.prefix} "
+                  f"--ros-domain-id {ros.domain_id} --ros-namespace {ros.namespace}{remaps} OUT/`",
+                  extra={"fields": {"robot": keys.base, "missing": missing,
+                                    "router_configs": [str(p) for p in sections]}})
+        return False
     granted = sorted(set().union(*grants.values()))
-    (logger or logging.getLogger("ddvs.security")).error(
+    log.error(
         f"robot {keys.base!r} is not covered by the access control of {', '.join(str(p) for p in grants)} (beside "
         f"{zenoh_config}), which grants {granted or 'no robot'}: that router would drop every message of this robot. "
         f"Use the robot those rules were made for, or make rules for this one: `ddvs security init --robot "
@@ -540,8 +604,7 @@ def check_process_covered(command_key: str, zenoh_config: str | Path | None,
     (`<prefix>/serve/<process>/command`): that router would drop every `add_robot`, `remove_robot` and `list_robots`.
     True when they allow it or when there is none in sight."""
     sections = sibling_access_controls(zenoh_config)
-    allowed = {key for section in sections.values() for rule in section.get("rules", [])
-               for key in rule.get("key_exprs", [])}
+    allowed = _allowed_keys(sections)
     if not sections or command_key in allowed:
         return True
     robots = set().union(*(robots_granted(section) for section in sections.values()))

@@ -70,6 +70,7 @@ from ddvs_service.protocol import (
 )
 from ddvs_service.protocol.control import PROCESS_OPS
 from ddvs_service.protocol.endpoints import Endpoints
+from ddvs_service.protocol.ros_graph import SERVO_NODE
 from ddvs_service.rectification import CameraGeometry, camera_geometry
 from ddvs_service.registration.images import to_grey
 from ddvs_service.service.config import IntrinsicsConfig, ServiceConfig, deep_merge
@@ -200,7 +201,7 @@ class RobotServo:
         loop starts (`Inbox` keeps the newest one only; no frame is answered before `open`)."""
         if self._ends is not None:
             return
-        ends = Endpoints(session, self.keys, "ddvs_servo")  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
+        ends = Endpoints(session, self.keys, SERVO_NODE)  # in ROS 2 mode: graph tokens, attachments (docs/ros2.md)
         ends.subscriber(self.config.camera.topic, self._on_frame)  # held until `ends.close()`
         ends.subscriber("camera_info", self.inbox.on_info)
         self._ends = ends
