@@ -1,9 +1,10 @@
 """Closed loops through real cameras' image pipelines: `ddvs serve` in a subprocess servoes a free-flying camera
 (`sim.freeflyer`) whose frames reach it as a calibrated ROS camera sends them — `image_raw` through a plumb_bob lens
-(k1 = −0.3, k2 = 0.1) or a fisheye lens with the calibrated CameraInfo, `image_rect` with the CameraInfo's `d` kept
-and its P set, JPEG q80 `CompressedImage` frames — and each converges to the pose the undistorted plant reaches
-from the same start, within 1 mm and 0.1°; its first twist (the intrinsics and the rectification at work) is the
-undistorted plant's within 10 %. The reference published on `servo/reference` carries the camera's header."""
+(k1 = −0.3, k2 = 0.1), a rational_polynomial or a fisheye lens with the calibrated CameraInfo, `image_rect` with the
+CameraInfo's `d` kept and its P set, JPEG q80 `CompressedImage` frames — and each converges to the pose the
+undistorted plant reaches from the same start, within 1 mm and 0.1°; its first twist (the intrinsics and the
+rectification at work) is the undistorted plant's within 10 %. The reference published on `servo/reference` carries
+the camera's header, and a raw reference upload is rectified as the live frames are."""
 
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ RECT = Intrinsics(260.0, 262.0, 158.0, 121.0, 320, 240)  # image_rect: the P of 
 DT = 0.1  # s: the camera moves by twist × DT between frames
 T_REF = pose(so3_exp([np.pi, 0.0, 0.0]), [0.0, 0.0, 0.5])  # 0.5 m above the plane z = 0, looking down
 T_START = T_REF @ pose(so3_exp([0.01, -0.015, 0.025]), [0.01, -0.008, 0.005])
-LENSES = {"plumb_bob": (-0.3, 0.1, 0.0, 0.0, 0.0), "equidistant": (0.05, -0.02, 0.0, 0.0)}
+LENSES = {"plumb_bob": (-0.3, 0.1, 0.0, 0.0, 0.0), "equidistant": (0.05, -0.02, 0.0, 0.0),
+          "rational_polynomial": (-0.25, 0.08, 0.001, -0.001, 0.0, 0.02, 0.0, 0.0)}
 FRAME_ID = "camera_optical_frame"
 
 
@@ -165,7 +167,7 @@ def _servo(kind: str, tmp_path: Path) -> tuple[np.ndarray, list[np.ndarray], Hea
 def test_distorted_rectified_and_compressed_cameras_converge_where_the_undistorted_one_does(tmp_path: Path) -> None:
     goal, twists, _ = _servo("pinhole", tmp_path)
     print(f"pinhole: {len(twists)} frames, first twist {np.round(twists[0], 4).tolist()}")
-    for kind in ("plumb_bob", "equidistant", "rect", "jpeg"):
+    for kind in ("plumb_bob", "equidistant", "rational_polynomial", "rect", "jpeg"):
         T, kind_twists, _ = _servo(kind, tmp_path)
         E = pose_inv(goal) @ T
         dist_mm = 1e3 * float(np.linalg.norm(E[:3, 3]))
@@ -198,3 +200,39 @@ def test_the_reference_carries_the_cameras_header_whatever_the_frames_encoding(t
             reference = decode_image(sample.payload.to_bytes())
             assert (reference.header, reference.encoding) == (header, published), encoding
             np.testing.assert_allclose(reference.array, expected, atol=0.5)
+
+
+def test_an_uploaded_raw_frame_is_rectified_like_the_live_frames(tmp_path: Path) -> None:
+    """With a plumb_bob camera on image_raw, a reference uploaded as a raw frame (saved from the camera) becomes the
+    rectified frame, the one `next_frame` would give, and is published so."""
+    from test_service_loop import upload_command
+
+    from ddvs_service.rectification import camera_geometry
+
+    port = free_port()
+    camera = Camera("plumb_bob")
+    config = ServiceConfig.model_validate({
+        "robot": "t0", "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "state_dir": str(tmp_path / "state"), "registration": {"template_size": [120, 90]}})
+    service = Service(config, tmp_path, "--fresh")
+    plant = Plant(port, camera)
+    try:
+        service.wait_ready(plant)
+        assert plant.command(op="set_reference", source="next_frame").ok
+        plant.publish(T_REF, 1_000_000_000)  # the camera info and a frame: the rectification is known
+        assert plant.reference.recv(10.0) is not None
+        raw = decode_image(camera.frame(T_START, Header(Time(2, 0), FRAME_ID))).array
+        assert plant.command(**upload_command(raw)).ok
+        sample = plant.reference.recv(10.0)
+        assert sample is not None, "no reference published for the upload"
+        reference = decode_image(sample.payload.to_bytes())
+    finally:
+        code, stderr = service.stop()
+        plant.close()
+        print(stderr[-3000:])
+    assert code == 0
+    rectifier = camera_geometry(camera.info, rectified=False).rectifier
+    assert rectifier is not None
+    assert reference.header.frame_id == FRAME_ID
+    assert float(np.abs(reference.array.astype(float) - rectifier(raw).astype(float)).mean()) < 0.5
+    assert float(np.abs(reference.array.astype(float) - raw.astype(float)).mean()) > 5.0
