@@ -10,6 +10,7 @@ camera is back at the reference pose.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -26,6 +27,7 @@ from conftest import free_port
 from geometry_msgs.msg import TwistStamped as RosTwistStamped
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo as RosCameraInfo
+from sensor_msgs.msg import CompressedImage as RosCompressedImage
 from sensor_msgs.msg import Image as RosImage
 from sensor_msgs.msg import JointState as RosJointState
 from std_msgs.msg import Float64MultiArray as RosFloat64MultiArray
@@ -245,10 +247,11 @@ class RosPeer:
             endpoint.close()
 
 
-def _serve(tmp_path: Path, port: int) -> subprocess.Popen:
+def _serve(tmp_path: Path, port: int, transport: str = "raw") -> subprocess.Popen:
     config = tmp_path / "serve.json"
-    config.write_text('{"state_dir": "%s", "registration": {"template_size": [120, 90]}, '
-                      '"control": {"gains": 2.0, "max_linear": 0.5, "max_angular": 1.0}}' % (tmp_path / "state"))
+    config.write_text(json.dumps({"state_dir": str(tmp_path / "state"), "registration": {"template_size": [120, 90]},
+                                  "camera": {"transport": transport},
+                                  "control": {"gains": 2.0, "max_linear": 0.5, "max_angular": 1.0}}))
     env = {k: v for k, v in os.environ.items() if not k.startswith(("DDVS_", "ZENOH_"))}
     return subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "ddvs.cli", "serve", "--config", str(config),
                              "--fresh", "--ros-domain-id", str(DOMAIN), "--listen", "tcp/127.0.0.1:0",
@@ -460,3 +463,86 @@ def test_ros_options_from_the_command_line_and_their_errors(monkeypatch: pytest.
                           (["--ros-namespace", "cell"], "namespace 'cell'")):
         with pytest.raises(SystemExit, match=message):
             ros_settings_from_args(parser.parse_args(argv))
+
+
+def test_serve_in_ros2_mode_reads_image_transports_compressed_topic(ros_side: int, tmp_path: Path) -> None:
+    """`camera.transport` compressed in ROS 2 mode: the service subscribes to /image_raw/compressed with
+    sensor_msgs/msg/CompressedImage's type hash; a ROS peer's rclpy-serialised JPEG q80 frames (image_transport's
+    long `format`) with their camera info are answered, the reference carries the peer's header, and the servo
+    moves the camera towards the reference."""
+    import cv2
+    from zenoh_ros2_sdk import ROS2Publisher, get_topic_names_and_types
+    from zenoh_ros2_sdk.attachment import Attachment
+
+    from ddvs_service.protocol import decode_image
+    from sim.freeflyer import FreeFlyer
+    from sim.surfaces import Plane
+
+    port = ros_side
+    service = _serve(tmp_path, port, "compressed")
+    peer = RosPeer(port)
+    compressed = ROS2Publisher("/image_raw/compressed", "sensor_msgs/msg/CompressedImage",
+                               qos=SENSOR_DATA_QOS.encode(), type_hash=TYPE_HASHES["sensor_msgs/msg/CompressedImage"],
+                               router_port=port, domain_id=DOMAIN, node_name="camera_driver")
+    references: list[bytes] = []
+    reference_sub = peer.session.declare_subscriber(
+        f"{DOMAIN}/ddvs/reference/sensor_msgs::msg::dds_::Image_/{TYPE_HASHES['sensor_msgs/msg/Image']}",
+        lambda sample: references.append(sample.payload.to_bytes()))
+    sequence = 0
+
+    def publish(image: np.ndarray, stamp_ns: int) -> RosTwistStamped:
+        nonlocal sequence
+        _, info = _rclpy_frame(image, stamp_ns)
+        msg = RosCompressedImage()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        msg.header.frame_id = "camera_optical_frame"
+        msg.format = "mono8; jpeg compressed mono8"
+        pixels = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+        msg.data = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
+        for publisher, payload in ((peer.info, info), (compressed, bytes(serialize_message(msg)))):
+            sequence += 1
+            publisher.pub.put(payload, attachment=Attachment(sequence, time.time_ns(),
+                                                             publisher.publisher_gid).to_bytes())
+        return peer.twist_for(stamp_ns)
+
+    try:
+        _wait_for_graph(port)
+        topics = dict(get_topic_names_and_types(domain_id=DOMAIN, router_port=port))
+        assert topics["/image_raw/compressed"] == ["sensor_msgs/msg/CompressedImage"]
+        plane = Plane(pose(np.eye(3), [0.0, 0.0, 0.0]), (0.6, 0.6))
+        flyer = FreeFlyer(plane, INTR, T_REF, T_REF, DT, texture=_texture())
+        assert peer.call("set_reference") == (True, "the next camera frame becomes the reference")
+        for _ in range(20):  # as in the raw test: the reference is the first frame the service has intrinsics for
+            stamp = time.time_ns()
+            publish(flyer.observe().image, stamp)
+            ok, message = peer.call("start")
+            if ok:
+                break
+        assert ok and "SERVOING" in message, message
+        deadline = time.monotonic() + 10.0
+        while not references:
+            assert time.monotonic() < deadline, "no reference on /ddvs/reference"
+            time.sleep(0.05)
+        reference = decode_image(references[-1])
+        assert reference.header.frame_id == "camera_optical_frame" and reference.encoding == "mono8"
+        flyer.T_world_cam = T_REF @ pose(so3_exp([0.0, 0.0, 0.02]), [0.01, -0.008, 0.0])
+        errors = []
+        for _ in range(15):
+            twist = publish(flyer.observe().image, time.time_ns())
+            assert twist.header.frame_id == "camera_optical_frame"
+            t, w = twist.twist.linear, twist.twist.angular
+            flyer.move([t.x, t.y, t.z, w.x, w.y, w.z])
+            E = pose_inv(T_REF) @ flyer.T_world_cam
+            errors.append(float(np.linalg.norm(E[:3, 3]) + np.linalg.norm(so3_log(E[:3, :3]))))
+        print(f"compressed over ROS 2: pose error {errors[0]:.4f} → {errors[-1]:.4f} (m + rad) in 15 frames")
+        assert errors[-1] < 0.3 * errors[0]
+    finally:
+        reference_sub.undeclare()
+        compressed.close()
+        peer.close()
+        if service.poll() is None:
+            service.send_signal(signal.SIGTERM)
+        code = service.wait(timeout=30)
+        stderr = service.stderr.read() if service.stderr else ""
+        print(stderr[-6000:])
+    assert code == 0
