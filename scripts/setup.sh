@@ -17,7 +17,7 @@ fi
 # Reinstall only when the dependency declaration changed since the last install.
 if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
     say "installing ddvs and its dependencies (pyproject.toml changed or first run)"
-    "$VENV/bin/pip" install --quiet --disable-pip-version-check -e '.[dev]'
+    "$VENV/bin/pip" install --quiet --disable-pip-version-check -e '.[dev,ray]'
     # sapien pulls in opencv-python (GUI build); both provide cv2. We want the headless build to own cv2.
     if "$VENV/bin/pip" show --quiet opencv-python >/dev/null 2>&1; then
         say "replacing opencv-python (pulled in by sapien) with opencv-python-headless"
@@ -30,7 +30,7 @@ if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
 else
     say "python packages up to date ($STAMP newer than pyproject.toml)"
 fi
-"$VENV/bin/python" -c "import cv2, taichi, zenoh, pinocchio, sapien" 2>/dev/null \
+"$VENV/bin/python" -c "import cv2, taichi, zenoh, pinocchio, sapien, ray" 2>/dev/null \
     || { say "ERROR: an installed package fails to import"; exit 1; }
 # The project's own bytecode: an editable install leaves it to the first import, which never writes it where the
 # directory is read-only for the service's user or PYTHONDONTWRITEBYTECODE is set, so every start would compile
