@@ -3,6 +3,11 @@
 domain` (convergence domain, `orchestration.experiment_domain`) and `ddvs experiment robustness` (the servo under a
 real camera's conditions, `orchestration.experiment_robustness`).
 
+Each runs its trials on Ray (`orchestration.trials`, docs/sweeps.md): a local Ray started for the run on every core
+by default, `--cluster ADDRESS` a running cluster, `--workers N` at most N trials at once, `--workers 1` one after
+another in this process. A trial that fails is reported at the end (exit status 1) and runs again on the next run;
+Ctrl-C stops the run, keeping the finished trials (exit status 130).
+
 Prints a human-readable summary, or one JSON line with `--json` (law, geometry source, converged, why it stopped,
 images to convergence, the paper's count, final translation (m) and rotation (deg) errors, retreat (m), coupling
 measures), and saves plots of v(t) and of the 3-D trajectory into `--out` (default reports/synthetic).
@@ -12,11 +17,26 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from functools import partial
 from pathlib import Path
+
+from orchestration.trials import TrialsFailed, run_trials
+from orchestration.workers import Workers
 
 # The geometry sources offered on the command line; keep in step with experiment_synthetic.GEOMETRY_SOURCES
 # (listed here so that `ddvs --help` does not import numpy and the plant).
 GEOMETRIES = ("exact", "estimated")
+
+
+def add_worker_arguments(parser: argparse.ArgumentParser) -> None:
+    """`--workers N` and `--cluster ADDRESS` (`orchestration.workers.Workers`)."""
+    parser.add_argument("--workers", type=int, metavar="N",
+                        help="trials at once at most (default: every core of a local Ray started for the run, or "
+                             "every CPU of --cluster); 1: one after another in this process, without Ray")
+    parser.add_argument("--cluster", metavar="ADDRESS",
+                        help="run the trials on this running Ray cluster (HOST:PORT of its head, or 'auto' on one "
+                             "of its nodes; docs/sweeps.md)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--json", action="store_true", help="print one JSON line instead of text")
     sp.add_argument("--out", type=Path, default=Path("reports/synthetic"), help="directory for the plots")
     sp.add_argument("--no-plots", action="store_true", help="do not save plots")
+    add_worker_arguments(sp)
 
     pp = sub.add_parser("paper", help="both paper experiments (synthetic saddle, arm) with both laws, and the report")
     pp.add_argument("--out", type=Path, default=Path("reports/paper"), help="report directory (default reports/paper)")
@@ -43,6 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     help="run only these experiments (default: all four)")
     pp.add_argument("--max-images", type=int, help="image budget of every run (default 3000 synthetic, 2000 arm)")
     pp.add_argument("--force", action="store_true", help="re-run experiments whose summary exists")
+    add_worker_arguments(pp)
 
     dp = sub.add_parser("domain", help="success rate over random initial displacements of growing size")
     dp.add_argument("--target", choices=("planar", "saddle"), help="one target (default both)")
@@ -58,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     dp.add_argument("--max-images", type=int, default=400, help="image budget per trial (default 400)")
     dp.add_argument("--dt", type=float, default=0.1, help="sampling period (s, default 0.1)")
     dp.add_argument("--out", type=Path, default=Path("reports/domain"), help="output directory (resumable)")
-
+    add_worker_arguments(dp)
 
     rp = sub.add_parser("robustness", help="the servo under coarse intrinsics, light changes, occluders, noise, blur, "
                                            "JPEG, latency and frame loss (free-flying camera or SAPIEN arm)")
@@ -80,9 +102,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                         "'{\"registration\": {\"robust\": \"huber\"}}'")
     rp.add_argument("--out", type=Path, help="output directory (resumable; default reports/robustness, "
                                              "reports/robustness/arm for the arm)")
+    add_worker_arguments(rp)
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        return run_experiment(args)
+    except TrialsFailed as failed:
+        print(failed, file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("stopped: the finished trials are kept; run the same command again to run the others",
+              file=sys.stderr)
+        return 130
+
+
+def run_experiment(args: argparse.Namespace) -> int:
     if args.experiment == "robustness" and args.plant == "arm":
         from orchestration.experiment_robustness_arm import run_arm_robustness_command
 
@@ -104,7 +139,14 @@ def run(args: argparse.Namespace) -> int:
         from orchestration.experiment_domain import run_domain_command
 
         return run_domain_command(args)
-    from orchestration.experiment_synthetic import PAPER_R, PAPER_T, SyntheticSetup, run_synthetic, save_plots
+    from orchestration.experiment_synthetic import (
+        PAPER_R,
+        PAPER_T,
+        ExperimentResult,
+        SyntheticSetup,
+        run_synthetic,
+        save_plots,
+    )
 
     setup = SyntheticSetup(
         t=tuple(args.t) if args.t else PAPER_T,
@@ -115,7 +157,10 @@ def run(args: argparse.Namespace) -> int:
         scaling=args.scaling,
         **({"texture": args.texture} if args.texture else {}),
     )
-    result = run_synthetic(args.law, setup, args.geometry)
+    results: list[ExperimentResult] = []
+    run_trials([args.law], partial(run_synthetic, setup=setup, geometry=args.geometry),
+               Workers(args.workers, args.cluster), lambda _, result: results.append(result))
+    result = results[0]
     summary: dict[str, object] = dict(result.summary())  # a list of plot paths joins the scalars
     if not args.no_plots:
         summary["plots"] = [str(p) for p in save_plots(result, args.out, setup)]

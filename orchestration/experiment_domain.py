@@ -57,6 +57,7 @@ from ddvs_service.service.config import RegistrationSettings
 from ddvs_service.service.estimators import tracking_session
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_ROI_SIZE, TEXTURE
 from orchestration.journal import run_journalled
+from orchestration.workers import SEQUENTIAL, Workers
 from sim.freeflyer import Appearance, FreeFlyer, render_view
 from sim.surfaces import Plane, Surface, paper_saddle
 from sim.textures import load_texture
@@ -270,11 +271,13 @@ def run_trial(target: str, law: str, size: float, trial: int, settings: DomainSe
                  t_err, r_err, note, rejected, registered, min_in_view)
 
 
-def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool = False) -> list[Trial]:
+def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool = False,
+               workers: Workers = SEQUENTIAL) -> list[Trial]:
     """Every trial of the sweep, in the order trial → size → target → law (an interrupted sweep has covered every
-    size about equally). With `out_dir`, each trial is appended
-    to `trials.jsonl` there as it ends, and trials already in that file are not run again (resume; the sizes,
-    trials, targets and laws may change, every other setting must be the same)."""
+    size about equally), run on `workers` (`orchestration.trials`). With `out_dir`, each trial is appended to
+    `trials.jsonl` there as it ends, and trials already in that file are not run again (resume; the sizes, trials,
+    targets and laws may change, every other setting must be the same); the journal ends in the sweep's order
+    (`orchestration.journal`)."""
     journal = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -284,7 +287,7 @@ def run_domain(settings: DomainSettings, out_dir: Path | None = None, log: bool 
     keys = [(target, law, float(size), k) for k in range(settings.trials) for size in settings.sizes
             for target in settings.targets for law in settings.laws]
     return run_journalled(keys, lambda key: run_trial(*key, settings), Trial,
-                          lambda t: (t.target, t.law, t.size, t.trial), journal, asdict if log else None)
+                          lambda t: (t.target, t.law, t.size, t.trial), journal, asdict if log else None, workers)
 
 
 def _check_resumable(settings: DomainSettings, path: Path) -> None:
@@ -379,7 +382,7 @@ def run_domain_command(args: argparse.Namespace) -> int:
         sizes=tuple(args.sizes), trials=args.trials, illumination=args.illumination, noise=args.noise,
         seed=args.seed, dt=args.dt, max_images=args.max_images,
     )
-    trials = run_domain(settings, args.out, log=True)
+    trials = run_domain(settings, args.out, log=True, workers=Workers(args.workers, args.cluster))
     for path in write_report(trials, settings, args.out).values():
         print(path)
     return 0

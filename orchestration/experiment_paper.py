@@ -20,7 +20,9 @@ Measures, from the ground truth (evaluation only), the same for both plants:
   over the whole run and where the remaining rotation is below 5°.
 
 Each experiment writes `<out>/<name>/summary.json` and its figures (velocities and 3-D trajectory as the paper's
-Figs. 3, 4, 6, 7, error norm, pose error); an experiment whose summary exists is skipped unless `force`.
+Figs. 3, 4, 6, 7, error norm, pose error); an experiment whose summary exists is skipped unless `force`. The
+experiments are trials of `orchestration.trials` (run at once on Ray workers unless `--workers 1`): each writes into a
+temporary directory of the host that runs it and gives its files back with its row (`run_experiment`).
 `write_report` gathers them into `<out>/report.md` and `<out>/paper.json`.
 """
 
@@ -29,7 +31,9 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import tempfile
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +52,8 @@ from orchestration.experiment_synthetic import (
     run_synthetic,
     save_plots,
 )
+from orchestration.trials import run_trials
+from orchestration.workers import SEQUENTIAL, Workers
 
 F64 = NDArray[np.float64]
 
@@ -208,25 +214,59 @@ def arm_measures(recording: Any, law: LawName, gain: float, target_centre: F64) 
     }
 
 
-def run_paper(settings: PaperSettings, log: bool = False) -> dict[str, dict[str, Any]]:
-    """Run (or resume) the selected experiments and write the report; returns the summary rows by name."""
+@dataclass(frozen=True)
+class ExperimentOutput:
+    """What one experiment gives back to the process that runs the paper (`run_experiment`): its summary row and
+    every file it wrote (path relative to its directory → bytes: figures, the arm's recording and logs), so that it
+    may have run on another host."""
+
+    row: dict[str, Any]
+    files: dict[str, bytes]
+
+
+def run_experiment(name: str, settings: PaperSettings) -> ExperimentOutput:
+    """Experiment `name` (of `EXPERIMENTS`) in a fresh temporary directory on the host that runs it; returns its row
+    and files."""
+    plant, law = name.split("_")
+    with tempfile.TemporaryDirectory(prefix=f"ddvs-{name}-") as tmp:
+        out = Path(tmp)
+        row = (run_synthetic_experiment if plant == "synthetic" else run_arm_experiment)(law, out, settings)
+        files = {str(f.relative_to(out)): f.read_bytes() for f in sorted(out.rglob("*")) if f.is_file()}
+    return ExperimentOutput(row, files)
+
+
+def run_paper(settings: PaperSettings, log: bool = False, workers: Workers = SEQUENTIAL) -> dict[str, dict[str, Any]]:
+    """Run (or resume) the selected experiments on `workers` (`orchestration.trials`) and write the report; returns
+    the summary rows by name, in the order of `settings.experiments`. Each experiment's directory `<out>/<name>` is
+    replaced by the files it gave back, then its summary written, as it ends. Raises
+    `orchestration.trials.TrialsFailed` (after the report of the others) when some experiments failed."""
     rows: dict[str, dict[str, Any]] = {}
+    todo = []
     for name in settings.experiments:
-        out = settings.out_dir / name
-        summary_file = out / SUMMARY
+        summary_file = settings.out_dir / name / SUMMARY
         if summary_file.exists() and not settings.force:
             rows[name] = json.loads(summary_file.read_text())
             if log:
                 print(f"{name}: summary exists, skipped (use --force to re-run)", flush=True)
-            continue
-        plant, law = name.split("_")
-        out.mkdir(parents=True, exist_ok=True)
-        row = (run_synthetic_experiment if plant == "synthetic" else run_arm_experiment)(law, out, settings)
-        summary_file.write_text(json.dumps(row, indent=2))
-        rows[name] = row
+        else:
+            todo.append(name)
+
+    def keep(name: str, output: ExperimentOutput) -> None:
+        out = settings.out_dir / name
+        shutil.rmtree(out, ignore_errors=True)
+        for relative, data in output.files.items():
+            (out / relative).parent.mkdir(parents=True, exist_ok=True)
+            (out / relative).write_bytes(data)
+        (out / SUMMARY).write_text(json.dumps(output.row, indent=2))
+        rows[name] = output.row
         if log:
-            print(json.dumps({k: v for k, v in row.items() if k != "figures"}), flush=True)
-    write_report(rows, settings.out_dir)
+            print(json.dumps({k: v for k, v in output.row.items() if k != "figures"}), flush=True)
+
+    try:
+        run_trials(todo, partial(run_experiment, settings=settings), workers, keep)
+    finally:
+        rows = {name: rows[name] for name in settings.experiments if name in rows}
+        write_report(rows, settings.out_dir)
     return rows
 
 
@@ -275,6 +315,6 @@ def run_paper_command(args: argparse.Namespace) -> int:
                                                    "arm_max_images": args.max_images}
     settings = PaperSettings(out_dir=args.out, experiments=tuple(args.only or EXPERIMENTS), force=args.force,
                              **budgets)
-    rows = run_paper(settings, log=True)
+    rows = run_paper(settings, log=True, workers=Workers(args.workers, args.cluster))
     print(settings.out_dir / "report.md")
     return 0 if all(row["converged"] for row in rows.values()) else 1

@@ -48,6 +48,7 @@ from ddvs_service.service.state import ServoState
 from orchestration.experiment_domain import DomainSettings, trial_start
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_R, PAPER_ROI_SIZE, PAPER_T
 from orchestration.journal import run_journalled
+from orchestration.workers import SEQUENTIAL, Workers
 from sim.conditions import (
     Condition,
     Dimming,
@@ -358,10 +359,11 @@ def _project(G: F64, e: F64, rho: float, p: tuple[float, float]) -> F64:
 
 
 def run_matrix(settings: RobustnessSettings, out_dir: Path | None = None, log: bool = False,
-               one: Callable[[str, str, str, str, RobustnessSettings], Run] = run_one) -> list[Run]:
+               one: Callable[[str, str, str, str, RobustnessSettings], Run] = run_one,
+               workers: Workers = SEQUENTIAL) -> list[Run]:
     """Every run of the matrix (condition → start → target → law), each `one(target, law, start, condition,
-    settings)` (default the free-flyer's `run_one`); with `out_dir`, each run is appended to `runs.jsonl` there
-    (traces included) and runs already journalled are not run again."""
+    settings)` (default the free-flyer's `run_one`) on `workers` (`orchestration.trials`); with `out_dir`, each run
+    is appended to `runs.jsonl` there (traces included) and runs already journalled are not run again."""
     journal = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -369,7 +371,8 @@ def run_matrix(settings: RobustnessSettings, out_dir: Path | None = None, log: b
     keys = [(target, law, start, condition) for condition in settings.conditions for start in settings.starts
             for target in settings.targets for law in settings.laws]
     return run_journalled(keys, lambda key: one(*key, settings), Run,
-                          lambda r: (r.target, r.law, r.start, r.condition), journal, _summary if log else None)
+                          lambda r: (r.target, r.law, r.start, r.condition), journal, _summary if log else None,
+                          workers)
 
 
 def _summary(run: Run) -> dict[str, object]:
@@ -468,7 +471,7 @@ def run_robustness_command(args: argparse.Namespace) -> int:
         conditions=tuple(args.conditions) if args.conditions else tuple(CONDITIONS), max_images=args.max_images,
         overrides=json.loads(args.overrides) if args.overrides else {},
     )
-    runs = run_matrix(settings, args.out, log=True)
+    runs = run_matrix(settings, args.out, log=True, workers=Workers(args.workers, args.cluster))
     for path in write_report(runs, settings, args.out).values():
         print(path)
     return 0

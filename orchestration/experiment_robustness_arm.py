@@ -55,6 +55,7 @@ from orchestration.experiment_robustness import (
     write_report,
 )
 from orchestration.experiment_synthetic import LAW_NAMES
+from orchestration.workers import Workers
 from sim.arm import ArmSim
 from sim.arm_scene import ArmSceneConfig, StartPose, scene_config_from_dict
 from sim.ground_truth import GroundTruth, ground_truth
@@ -207,7 +208,8 @@ def run_arm_robustness_command(args: argparse.Namespace) -> int:
     if unknown:
         raise ValueError(f"conditions {unknown} are not rendered on the arm; expected some of {list(ARM_CONDITIONS)}")
     scene = args.scene or SCENE
-    runs = run_matrix(settings, args.out, log=True, one=partial(run_arm_one, scene_path=scene))
+    runs = run_matrix(settings, args.out, log=True, one=partial(run_arm_one, scene_path=scene),
+                      workers=Workers(args.workers, args.cluster))
     for path in write_report(runs, settings, args.out).values():
         print(path)
     return 0
