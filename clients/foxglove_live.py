@@ -1,5 +1,6 @@
 """`ddvs monitor --foxglove`: a live Foxglove view of one servo, served with the Foxglove WebSocket protocol
-(`foxglove.websocket.v1`, foxglove-sdk) from its Zenoh keys.
+(foxglove-sdk) from its Zenoh keys, to clients that offer either of its names, `foxglove.sdk.v1` (the Foxglove app)
+or `foxglove.websocket.v1` (viewers on `@foxglove/ws-protocol`, such as Lichtblick): `clients.foxglove_relay`.
 
 Channels: the channels of a run (`clients.channels.run_channels`: frames, camera info, twist, joint states, the
 reference and the registration's residual image as ROS 2 CDR with `ros2msg` schemas; status, state, ground truth
@@ -26,6 +27,7 @@ from foxglove.messages import FrameTransform, Quaternion, Timestamp, Vector3
 from foxglove.websocket import ChannelView, Client, ServerListener
 
 from clients.channels import ChannelSpec, pose_topic, run_channels
+from clients.foxglove_relay import SubprotocolRelay
 from ddvs_service.lie import so3_log
 
 if TYPE_CHECKING:
@@ -67,9 +69,10 @@ class FoxgloveBridge(ServerListener):
         self._residual_watchers = 0
         self._residual_subscriber: Any = None
         self._lock = threading.Lock()
-        self.server = foxglove.start_server(name=f"ddvs {keys.base}", host=host, port=port, context=self.context,
+        self.server = foxglove.start_server(name=f"ddvs {keys.base}", host="127.0.0.1", port=0, context=self.context,
                                             server_listener=self)
-        self.port = self.server.port
+        self.relay = SubprotocolRelay(host, port, self.server.port)  # the public socket, either protocol name
+        self.port = self.relay.port
 
     def _channel(self, spec: ChannelSpec) -> foxglove.Channel:
         schema = foxglove.Schema(name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema.encode())
@@ -117,6 +120,7 @@ class FoxgloveBridge(ServerListener):
                 self._residual_subscriber = None
 
     def close(self) -> None:
+        self.relay.close()
         self.server.stop()
         with self._lock:
             residual, self._residual_subscriber = self._residual_subscriber, None
@@ -128,8 +132,9 @@ class FoxgloveBridge(ServerListener):
 def serve(session: zenoh.Session, keys: Keys, host: str, port: int, stop: threading.Event) -> None:
     """Serve the live view until `stop` is set."""
     bridge = FoxgloveBridge(session, keys, host, port)
+    layout = "docs/foxglove/ddvs-layout-ros2.json" if keys.rmw else "docs/foxglove/ddvs-layout.json"
     print(f"ddvs monitor: Foxglove live view of {keys.base} on ws://{host}:{bridge.port} — in Foxglove: Open "
-          f"connection → Foxglove WebSocket; layout: docs/foxglove/ddvs-layout.json", flush=True)
+          f"connection → Foxglove WebSocket; layout: {layout} (robot0; docs/recording.md)", flush=True)
     try:
         stop.wait()
     finally:

@@ -178,7 +178,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.protocol.ros_cli import add_ros_arguments
 
     parser.add_argument("--foxglove", action="store_true",
-                        help="serve a live Foxglove view (WebSocket, foxglove.websocket.v1) instead of the terminal's")
+                        help="serve a live Foxglove view (Foxglove WebSocket protocol, offered as foxglove.sdk.v1 "
+                             "or foxglove.websocket.v1) instead of the terminal's")
     parser.add_argument("--host", default="127.0.0.1", help="--foxglove: address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8765, help="--foxglove: port (default 8765)")
     parser.add_argument("--once", action="store_true",
