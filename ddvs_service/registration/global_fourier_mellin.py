@@ -36,7 +36,7 @@ class FourierMellinConfig:
     n_theta: int = 180  # angle bins over [0, π) → 1° per bin
     n_rho: int = 96  # log-radius bins over rho_range
     rho_range: tuple[float, float] = (0.03, 0.45)  # cycles per pixel
-    scale_range: tuple[float, float] = (0.6, 1.6)  # apparent ROI scale searched (current / reference)
+    scale_range: tuple[float, float] = (0.6, 1.6)  # apparent ROI scale (current / reference) of the log-polar peaks
     rotation_scale_peaks: int = 3  # (θ mod π, s) peaks kept
     translation_peaks: int = 2  # translation peaks kept per (θ, s)
     context: float = 2.5  # reference spectrum window = ROI grown by this factor (clipped to the image)
@@ -44,8 +44,18 @@ class FourierMellinConfig:
     search_width: int = 160  # search on the pyramid level that brings the current image to at most this width …
     min_search_roi: int = 32  # … unless the ROI would fall below this many pixels a side there
     grid_rotations: int = 18  # uniform rotation grid over 360° added to the log-polar peaks
-    grid_scales: int = 3  # scales of the grid, log-spaced strictly inside scale_range
+    # The grid's scales, log-spaced strictly inside grid_scale_range (0.72, 0.95, 1.25, 1.66): wider than the peaks'
+    # range, for the views the spectrum peaks miss — a camera 0.4 m closer to a target 1 m away, and tilted, sees it
+    # magnified ~1.8× (the screening takes a grid start within ~15 % of the scale into its basin). The peaks' range
+    # stays narrower: wider, a peak of a wrong warp can win under a large occluder (tests/test_global_init.py).
+    grid_scales: int = 4
+    grid_scale_range: tuple[float, float] = (0.55, 2.2)
     max_hypotheses: int = 36  # best translation peaks (by correlation height) scored at the search level
+
+    @property
+    def max_scale(self) -> float:
+        """The largest apparent scale any stage searches (the translation search's template box)."""
+        return max(self.scale_range[1], self.grid_scale_range[1])
 
 
 @dataclass(frozen=True)
@@ -365,8 +375,8 @@ class SearchPair:
 
 
 def rotation_scale_grid(cfg: FourierMellinConfig) -> list[tuple[float, float]]:
-    """Uniform (θ, s) grid over ±180° and the scale range: guarantees coverage where the spectrum peaks miss."""
-    lo, hi = cfg.scale_range
+    """Uniform (θ, s) grid over ±180° and `grid_scale_range`: guarantees coverage where the spectrum peaks miss."""
+    lo, hi = cfg.grid_scale_range
     thetas = np.arange(cfg.grid_rotations) * (2.0 * np.pi / max(cfg.grid_rotations, 1))
     scales = np.exp(np.linspace(np.log(lo), np.log(hi), cfg.grid_scales + 2)[1:-1])
     return [(float(t), float(s)) for t in thetas for s in scales]
@@ -395,7 +405,7 @@ def translation_hypotheses(
 
 def fourier_mellin_hypotheses(search: SearchPair, cfg: FourierMellinConfig) -> list[Hypothesis]:
     """Every stage's hypotheses at once (lowest photometric cost first)."""
-    translation = TranslationSearch(search.current, search.template, cfg.scale_range[1])
+    translation = TranslationSearch(search.current, search.template, cfg.max_scale)
     found = [h for stage in rotation_scale_stages(search, cfg) for h in translation_hypotheses(search, translation,
                                                                                                   stage, cfg)]
     return sorted(found, key=lambda hyp: hyp.score.cost)

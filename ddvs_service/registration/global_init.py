@@ -23,12 +23,13 @@ start reproduces — searched only when stages 1–2 ended LOST, and its winner 
    RMS over the ROI, visible cost ≤ `max_cost`) minus the winner's (1 − the winner's when there is none);
 4. status "LOST" when the winner's visible cost at the search level exceeds `max_cost`, its visible ROI fraction is
    below `min_visible`, or the margin is below `min_margin` — never a confident wrong estimate;
-5. a planar winner LOST only for its cost, with a search-level visible cost up to `general_max_cost`, is refined by
-   the general model of eq. (2) (`GeneralRefiner`): on a curved target a correct planar fit keeps the parallax as
-   residual (0.3–0.35 on the saddle seen 38° obliquely), which the general model removes (0.15–0.17 there), while
-   it does not converge from a wrong match. When it converges, the decision of 3–4 is taken again with the general
-   refinement in the winner's place, its quality being its own visible cost at full resolution; an OK result's `G`
-   is then the planar part `G` of eq. (2);
+5. a planar winner LOST only for its cost, with a search-level visible cost up to `general_max_cost`, or only for
+   its margin, is refined by the general model of eq. (2) (`GeneralRefiner`): on a curved target a correct planar
+   fit keeps the parallax as residual (0.3–0.35 on the saddle seen 38° obliquely), which the general model removes
+   (0.15–0.17 there), and planar fits of the curved patch a few pixels apart score alike (an ambiguity eq. (2)
+   resolves), while it does not converge from a wrong match. When it converges, the decision of 3–4 is taken again
+   with the general refinement in the winner's place, its quality being its own visible cost at full resolution; an
+   OK result's `G` is then the planar part `G` of eq. (2);
 6. an OK winner is LOST after all when a different refined solution kept in view fits the best-matching
    `trimmed_kept` share of the ROI better (`global_cost.trimmed_score`) by more than `trimmed_tolerance`: a foreign
    object over part of the ROI inflates every solution's cost alike and can let a warp that pushes the ROI off it
@@ -312,7 +313,7 @@ class GlobalInitializer:
         ref, cur = _check_inputs(reference, roi, current)
         side = self.reference_side(ref, roi)
         search = SearchPair.build(side.search, cur)
-        translation = TranslationSearch(search.current, search.template, fm.scale_range[1])
+        translation = TranslationSearch(search.current, search.template, fm.max_scale)
         GATE.checkpoint()  # between steps too, a frame waiting for Taichi goes first (`kernels.exclusive`)
         first_level = max(0, side.search.level - 1)
         extra = self._features(search, ref, roi, cur)
@@ -371,11 +372,16 @@ def _ranked(refined: dict[int, list[Candidate]], cfg: GlobalInitConfig) -> list[
 
 
 def _general_check(result: InitResult, side: ReferenceSide, cur: F32, cfg: GlobalInitConfig) -> InitResult:
-    """Step 5 of the module docstring: a planar winner LOST only for its cost (at most `general_max_cost`) is
-    refined by the general model; if that converges, the decision is taken again with it as the winner."""
+    """Step 5 of the module docstring: a planar winner LOST only for its cost (at most `general_max_cost`) or for
+    its margin is refined by the general model; if that converges, the decision is taken again with it as the
+    winner."""
     best = result.winner
     if (result.status == "OK" or best is None or best.refinement.model != "planar"
-            or not _max_cost(best, cfg) < result.cost <= cfg.general_max_cost or best.score.visible < cfg.min_visible):
+            or best.score.visible < cfg.min_visible):
+        return result
+    costly = _max_cost(best, cfg) < result.cost <= cfg.general_max_cost
+    ambiguous = result.cost <= _max_cost(best, cfg) and result.margin < cfg.min_margin
+    if not (costly or ambiguous):
         return result
     general = [Candidate(best.source, best.start_cost, r, photometric_score(side.template, r.sampled, r.valid))
                for r in side.general(cur, best.refinement.G, 0)]

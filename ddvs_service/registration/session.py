@@ -190,10 +190,12 @@ class TrackingSession:
     def _search(self, current: NDArray[np.float32], retry: bool) -> Acquisition:
         """The re-acquisition of `current`; beside the loop, from the tracker's state first when there is a last
         good estimate (its state is that estimate: an untracked frame leaves it unchanged) and `retry` (this frame
-        was not tried from there already)."""
+        was not tried from there already). The tracker's state is the estimate a contradiction is reported against
+        once it has tracked a frame or been resumed."""
         G = self._tracker.G
         start = G if self._acquire.beside and self._last_good is not None and retry else None
-        return self._acquire(current, G, start)
+        tracked = self._last_good is not None or self._before is not None  # else G is only where the tracker began
+        return self._acquire(current, G if tracked else None, start)
 
 
 def _parallax(result: RegistrationResult, control_px: tuple[float, float]) -> tuple[F64, float, list[float]]:
