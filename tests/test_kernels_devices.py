@@ -115,7 +115,8 @@ def device(request: pytest.FixtureRequest) -> str:
     name = str(request.param)
     probe = run(name, "-c", "from kernels.backend import init; print(init())")
     if probe.returncode != 0 or probe.stdout.strip().splitlines()[-1:] != [name]:
-        message = f"Taichi cannot start {name!r} here (it fell back to the CPU): {probe.stderr.strip()[-500:]}"
+        reason = (probe.stderr.strip().splitlines() or ["no message"])[-1][-300:]
+        message = f"Taichi cannot start {name!r} here (it fell back to the CPU): {reason}"
         if required(name):
             pytest.fail(f"{message}; required by DDVS_REQUIRE_DEVICES or CI (scripts/setup.sh installs lavapipe)")
         pytest.skip(message)
