@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test test-fast typecheck lint bench clean certs
+.PHONY: setup demo test test-fast typecheck lint docs docs-check bench clean certs
 
 setup:
 	@bash scripts/setup.sh
@@ -17,6 +17,8 @@ test: setup
 	$(VENV)/bin/ruff check .
 	@echo "[test] mypy (pyproject.toml, [tool.mypy])"
 	$(VENV)/bin/mypy
+	@echo "[test] documentation site (mkdocs build --strict: no broken link, no missing page)"
+	$(MAKE) --no-print-directory docs-check
 	@echo "[test] pytest (every test, slow ones included; the kernels on Vulkan too: docs/gpu.md)"
 	DDVS_REQUIRE_DEVICES=$${DDVS_REQUIRE_DEVICES:-vulkan} $(PY) -m pytest -q
 
@@ -32,6 +34,16 @@ typecheck: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 
+# The documentation site (docs/, mkdocs.yml): regenerate the reference pages from the code, then build it into site/
+# (open site/index.html). docs-check builds it strict without writing any page (make test runs it).
+export NO_MKDOCS_2_WARNING := 1
+docs: setup
+	$(PY) -m scripts.docsgen
+	$(VENV)/bin/mkdocs build --strict
+
+docs-check: setup
+	$(VENV)/bin/mkdocs build --strict --quiet
+
 # The speed benchmarks (benchmarks/README.md): each prints its table with the machine and its load average.
 BENCHES ?= bench_registration bench_general bench_global_init
 bench: setup
@@ -43,4 +55,4 @@ certs:
 	@bash scripts/make_dev_certs.sh $(CERTS_DIR)
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache reports
+	rm -rf $(VENV) .pytest_cache .mypy_cache reports site

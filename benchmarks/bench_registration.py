@@ -45,7 +45,15 @@ from evaluation.pairs import ONE_GAIN_HUBER  # noqa: E402
 from sim.textures import texture_path  # noqa: E402
 
 IMAGE = texture_path("boat")
-README = ROOT / "benchmarks" / "README.md"
+# The results page (docs/results/) holding each benchmark section that `--write-readme` rewrites.
+RESULTS = ROOT / "docs" / "results"
+RESULTS_PAGES = {
+    "registration-real-pairs": RESULTS / "accuracy.md",
+    "registration-cost-optimum": RESULTS / "accuracy.md",
+    "registration-bench": RESULTS / "speed.md",
+    "global-init": RESULTS / "robustness.md",
+    "record-cost": RESULTS / "speed.md",
+}
 ITERATIONS = 20  # K iterations per timed call (ours and ECC)
 
 
@@ -212,23 +220,26 @@ def markdown(machine_line: str, iters: dict[str, dict[str, float]], track: dict[
 
 
 def write_readme_section(key: str, title: str, table: str, script: str) -> None:
-    """Replace (or append) the section between the `<!-- key:begin/end -->` markers of `benchmarks/README.md`."""
+    """Replace (or append) the section between the `<!-- key:begin/end -->` markers of its results page
+    (`RESULTS_PAGES[key]`, under docs/results/), dated: results pages are where measurements carry their date."""
+    page = RESULTS_PAGES[key]
     begin, end = f"<!-- {key}:begin -->", f"<!-- {key}:end -->"
-    section = (f"{begin}\n### {title} (`benchmarks/{script}`)\n\n{table}\n\n"
+    date = time.strftime("%Y-%m-%d", time.gmtime())
+    section = (f"{begin}\n## {title} (`benchmarks/{script}`)\n\nMeasured {date}.\n\n{table}\n\n"
                f"Re-run: `.venv/bin/python benchmarks/{script} --write-readme`.\n{end}")
-    text = README.read_text() if README.exists() else "# Benchmarks\n"
+    text = page.read_text(encoding="utf-8")
     if begin in text and end in text:
         text = text[: text.index(begin)] + section + text[text.index(end) + len(end) :]
     else:
         text = text.rstrip("\n") + "\n\n" + section + "\n"
-    README.write_text(text)
+    page.write_text(text, encoding="utf-8")
 
 
 def table_main(doc: str, run: Callable[[], str], key: str, title: str, script: str) -> int:
     """The `main` of a benchmark that prints one markdown table: `run()` → stdout, and with `--write-readme` into
-    its `key` section of `benchmarks/README.md` (`write_readme_section`). `doc`: the script's docstring."""
+    its `key` section of its results page (`write_readme_section`). `doc`: the script's docstring."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
-    parser.add_argument("--write-readme", action="store_true", help="replace the section in benchmarks/README.md")
+    parser.add_argument("--write-readme", action="store_true", help="replace its section of its results page (docs/results/)")
     args = parser.parse_args()
     table = run()
     print(table)
@@ -241,7 +252,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--reps", type=int, default=30, help="interleaved repetitions per ROI size")
     parser.add_argument("--frames", type=int, default=60, help="tracking frames")
-    parser.add_argument("--write-readme", action="store_true", help="replace the section in benchmarks/README.md")
+    parser.add_argument("--write-readme", action="store_true", help="replace its section of its results page (docs/results/)")
     parser.add_argument("--first-registration", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.first_registration:

@@ -34,7 +34,7 @@ from sim.textures import TEXTURES, load_texture
 CAM = Intrinsics.centred(420.0, 320, 240)
 ROI = (125, 85, 70, 70)
 SUCCESS_PX = 1.0
-README = Path(__file__).with_name("README.md")
+README = Path(__file__).resolve().parents[1] / "docs" / "results" / "robustness.md"  # its results page
 BEGIN, END = "<!-- global-init:begin -->", "<!-- global-init:end -->"
 
 
@@ -181,14 +181,14 @@ def main() -> None:
                 print(notes[-1], flush=True)
     load = os.getloadavg()
     table = "\n".join([*lines, *totals]) + "\n"
-    section = (f"{BEGIN}\n### Global initialisation (`benchmarks/global_init_sweep.py`)\n\n"
+    section = (f"{BEGIN}\n## Global initialisation (`benchmarks/global_init_sweep.py`)\n\n"
                f"Success = status OK and within {SUCCESS_PX} px RMS of the true warp over the 70×70 ROI; "
                f"LOST = reported failure; wrong OK = a confident wrong estimate. {args.trials} random displacements "
                f"per texture and setting (seed {args.seed}); load average at the end {load[0]:.1f}.\n\n{table}\n"
                + "\n".join(notes) + f"\n\nRe-run: `.venv/bin/python benchmarks/global_init_sweep.py --trials "
                f"{args.trials} --readme`.\n{END}")
     if args.readme:
-        text = README.read_text() if README.exists() else "# Benchmarks\n"
+        text = README.read_text(encoding="utf-8")
         if BEGIN in text:
             text = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _: section, text, flags=re.S)
         else:

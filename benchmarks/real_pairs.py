@@ -14,7 +14,7 @@ Error: the largest distance between the ROI corners mapped by the estimate and b
 failure (exception, not converged, or error > 5 px) is shown as such.
 
 Run: `.venv/bin/python benchmarks/real_pairs.py [--write-readme]` prints a markdown table (and with
-`--write-readme` replaces its section of `benchmarks/README.md`).
+`--write-readme` replaces its section of its results page, `docs/results/accuracy.md`).
 """
 
 from __future__ import annotations

@@ -294,8 +294,8 @@ def write_report(rows: dict[str, dict[str, Any]], out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "paper.json").write_text(json.dumps(rows, indent=2))
     lines = ["# The paper's experiments, reproduced", "",
-             "Produced by `ddvs experiment paper` (`orchestration/experiment_paper.py`); see docs/results.md for the "
-             "discussion.",
+             "Produced by `ddvs experiment paper` (`orchestration/experiment_paper.py`); see "
+             "docs/results/servoing.md for the discussion.",
              "", markdown_table(rows), "## How each run ended", ""]
     lines += [f"- {name}: {row['stopped']}" for name, row in rows.items()]
     lines += ["", "## Figures", ""]

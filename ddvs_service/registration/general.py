@@ -1,7 +1,7 @@
 """General (non-planar) direct registration: `G`, the epipole `e` and the parallax field ρ* of eq. (2)
 `p ∝ G p* + ρ*(p*) e`, with the gains `S` and bias `β` of (4), minimising the robust cost (5).
 
-Parametrisation (chosen from docs/plane-parallax-estimation.md and the measurements in docs/results.md):
+Parametrisation (chosen from docs/plane-parallax-estimation.md and the measurements in docs/results/):
 ρ* is a smooth polynomial field over the ROI (`general_basis.ParallaxBasis`, biquadratic by default: 6 coefficients),
 estimated once, on the first frame (the largest displacement), then held fixed in the reference frame; each later
 frame estimates only `G`, `e`, `S`, `β` (8 + 3 + gains + 1 unknowns). Re-estimating ρ* every frame drifts into a
