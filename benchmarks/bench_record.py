@@ -137,7 +137,7 @@ def run(seconds: float) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="publishing time per configuration")
-    parser.add_argument("--write-readme", action="store_true", help="replace its section of its results page (docs/results/)")
+    parser.add_argument("--write-readme", action="store_true", help="rewrite its section of its results page")
     args = parser.parse_args()
     table = run(args.seconds)
     print(table)

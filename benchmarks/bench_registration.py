@@ -239,7 +239,7 @@ def table_main(doc: str, run: Callable[[], str], key: str, title: str, script: s
     """The `main` of a benchmark that prints one markdown table: `run()` → stdout, and with `--write-readme` into
     its `key` section of its results page (`write_readme_section`). `doc`: the script's docstring."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
-    parser.add_argument("--write-readme", action="store_true", help="replace its section of its results page (docs/results/)")
+    parser.add_argument("--write-readme", action="store_true", help="rewrite its section of its results page")
     args = parser.parse_args()
     table = run()
     print(table)
@@ -252,7 +252,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--reps", type=int, default=30, help="interleaved repetitions per ROI size")
     parser.add_argument("--frames", type=int, default=60, help="tracking frames")
-    parser.add_argument("--write-readme", action="store_true", help="replace its section of its results page (docs/results/)")
+    parser.add_argument("--write-readme", action="store_true", help="rewrite its section of its results page")
     parser.add_argument("--first-registration", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.first_registration:

@@ -1,13 +1,15 @@
 """The optional full benchmark datasets (the Oxford affine sequences and the EF dataset), found through the
-`DDVS_DATASETS` environment variable only: the folder that holds `oxford/` and `ef/` (layout in the top-level
-README). Nothing the README's commands run needs them; benchmarks and tests that do skip without them."""
+`DDVS_DATASETS` environment variable only: the folder that holds `oxford/` and `ef/` (layout in
+docs/guide/installation.md). Nothing the README's commands run needs them; benchmarks and tests that do skip
+without them."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
-MISSING = "needs the full datasets: set DDVS_DATASETS to the folder holding oxford/ and ef/ (README, 'Datasets')"
+MISSING = ("needs the full datasets: set DDVS_DATASETS to the folder holding oxford/ and ef/ "
+           "(docs/guide/installation.md, 'Optional datasets')")
 
 
 def datasets_dir() -> Path | None:

@@ -47,7 +47,7 @@ histogram live in the work array (docs/performance.md). Even so, the pixel loop'
 4-column grid with a degree-3 ρ*) made that pass most of a cold compile; `general_step` compiles without it and
 without Taichi's other IR optimisations (`kernels.backend.compile_settings`), LLVM promoting the locals to registers
 and simplifying instead: a third of the CPU time cold, the same sums up to float32 rounding, launches within a few
-per cent (benchmarks/README.md).
+per cent (docs/results/speed.md).
 One float32 parameter array in (`PARAMS_*`), one float32 work array out (`work_size`).
 """
 

@@ -306,7 +306,7 @@ def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
     (integers: any order gives the same counts): LLVM compiles that to a fraction of the machine code of a loop over
     a run-time number of bands per bin (vectorised with its run-time checks and remainders), a first launch's code
     generation on every start. The sums keep their loop over the bands per entry: a local float64 array of all
-    `nacc` sums instead made Taichi's IR passes, and so a cold compile, grow with the grid (benchmarks/README.md,
+    `nacc` sums instead made Taichi's IR passes, and so a cold compile, grow with the grid (docs/results/speed.md,
     start-up). No local array here at all: Taichi 1.7's SPIR-V code generation (Vulkan) fails on a kernel whose
     parallel loop and serial tail both initialise a local array ("Value … does not yet exist": the element offsets
     of the second array refer to constants of the first task; docs/gpu.md)."""

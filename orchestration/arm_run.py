@@ -64,7 +64,7 @@ class ArmRunSettings:
     """`law` dvs | dvs_reduced | ddvs; `template` (w, h) pixels centred on p*; `clock` of the sim; `fps` frames per
     second; `gain` λ (1/s, Sec. 4: 0.4); `stop_threshold` on the error norm (Sec. 4: 1e-3); `gain_grid` (rows,
     cols) of the registration's gain surface (None: the service's default; the arm's light is uniform, so one gain is
-    its exact model, and on a 70×70 template the 3×3 surface biases the weakly seen tilt: README "Servoing");
+    its exact model, and on a 70×70 template the 3×3 surface biases the weakly seen tilt: docs/results/servoing.md);
     limits: `max_images`
     processed while servoing, `time_limit` seconds of wall time for the whole run; `settle_images` CONVERGED
     images required before finishing; `robot`/`prefix` of the keys; `launch` per child name how it starts

@@ -24,7 +24,7 @@ LAW_NAMES = {"dvs_reduced": "DVS (reduced error (13))", "dvs": "DVS", "ddvs": "d
 # corners by 0.01 px per 3e-3 of the control error. Near the goal its estimate of the decoupled error is off by 3–10e-3
 # at a given pose (deterministic; as much on float frames and on frames blurred further: the rendered frames' small
 # departures from a warped reference, not noise), so the servo settles where that biased estimate reads zero,
-# 0.7–3 mm away. At 100×100 the same error is 1e-3 and the servo settles 0.1–0.3 mm away (README "Servoing").
+# 0.7–3 mm away. At 100×100 the same error is 1e-3 and the servo settles 0.1–0.3 mm away (docs/results/servoing.md).
 DEMO_TEMPLATE = (100, 100)
 
 
@@ -120,7 +120,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sim clock (default realtime, 30 Hz)")
     parser.add_argument("--template", type=int, nargs=2, default=DEMO_TEMPLATE, metavar=("W", "H"),
                         help="template size centred on the control point (default 100 100; the paper's 70 70 "
-                             "settles on the estimate's tilt noise: README 'Servoing')")
+                             "settles on the estimate's tilt noise: docs/results/servoing.md)")
     parser.add_argument("--time-limit", type=float, default=240.0, help="seconds before giving up (default 240)")
     parser.add_argument("--scene", type=Path, help="arm scene (configs/arm/README.md; default the paper's poster, "
                                                    "configs/arm/ur5_poster.json); a saddle target is registered with "

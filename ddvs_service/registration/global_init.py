@@ -1,4 +1,4 @@
-"""Global initialisation and re-acquisition from large displacements (issue 9).
+"""Global initialisation and re-acquisition from large displacements.
 
 `GlobalInitializer.initialize(reference, roi, current)`, stage by stage (1. log-polar peaks and the feature
 hypothesis; 2. the uniform rotation/scale grid, searched only when stage 1 gave no clear winner; 3. foreshortened

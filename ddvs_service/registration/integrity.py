@@ -20,7 +20,7 @@ fits whatever the frame shows and stays near 1. Two measures keep the estimate h
   anchor with them. The cap is below the anchor (`scale_cap` 0.6: Tukey's cut-off at 2.8 inlier σ, which keeps
   99.5 % of Gaussian inliers): a foreign object's pixels that fall within the cut-off pull the fit, and on a dimmed
   scene (gains ≈ 3) their gradients, multiplied by the gain, outweigh the target's; `tests/test_integrity.py` and the
-  README's robustness section give the measurements (a biased fit at the frame's own σ, and the saddle's hard
+  docs/results/robustness.md give the measurements (a biased fit at the frame's own σ, and the saddle's hard
   combination). A looser cap (2×) let the weights follow a sweeping highlight or an occluder.
 - the scale test is coarse (`scale_jump` 4): on a texture with large uniform regions a misregistered fit keeps many
   pixels near the noise level, and a correct fit under a 43 % occluder measures 1.5–2.4× the anchor, so the two

@@ -5,7 +5,7 @@ Two windows of the same frames (an untracked frame empties both):
   it, s = √(mean_k ‖ε̄_k − ē‖²) (inf while the window is not full). A clean estimate stops on it: ‖ē‖ below the
   stop threshold and s below `scatter_factor` × it.
 - the long one, the last `noise_frames` (90), for an estimate that image noise makes scatter by more than that (a
-  scene dimmed 3× under noise and JPEG: README, Robustness): the norm of its mean, the standard error of that mean
+  scene dimmed 3× under noise and JPEG: results/robustness): the norm of its mean, the standard error of that mean
   s/√N (the mean is known to within it when the frames' errors are independent draws about it) and the ratio of s
   to the scatter the image noise alone predicts, p = √tr(A Σ̄ Aᵀ), Σ̄ the window's mean of the registration's Gauss-Newton
   covariances of `G` and `e` (`RegistrationResult.covariance`) and A the law's Jacobian at the newest frame
@@ -14,7 +14,7 @@ Two windows of the same frames (an untracked frame empties both):
   more than its noise predicts, and over a longer window more than over a short one, so its mean is not known to
   within the threshold. The Gauss-Newton covariance understates the scatter of an unbiased noisy estimate (noise
   after JPEG and blur is not independent from pixel to pixel; robust weights): the bound on the ratio,
-  `noise_ratio`, leaves room for that (README, Robustness: the measured ratios). A steady bias is not seen: an
+  `noise_ratio`, leaves room for that (results/robustness: the measured ratios). A steady bias is not seen: an
   estimate biased by several thresholds whose scatter is the noise's stops where its mean reads zero.
 """
 

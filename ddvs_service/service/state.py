@@ -54,8 +54,8 @@ class StateMachine:
     `stop_threshold` is the error norm below which the servo is CONVERGED, once it stayed below for
     `converge_frames` consecutive frames (one noisy dip does not stop the arm) with the estimate's `scatter` below
     `scatter_threshold` on each (a mean below the threshold is no evidence of the pose when the estimates it averages
-    scatter by more than the threshold: issue 20's confident wrong answer) — or, for an estimate that image noise
-    makes scatter by more, with the long window's mean below the threshold, its standard error below the threshold
+    scatter by more than the threshold: the confident wrong answer of a biased fit) — or, for an estimate that image
+    noise makes scatter by more, with the long window's mean below the threshold, its standard error below the threshold
     and its scatter at most `max_noise_ratio` × the one the noise predicts (`service.settling`); `resume_threshold`
     (> stop) is the norm above which a CONVERGED servo resumes: the frame's own norm (a disturbance is answered at
     once), or after a stop on the long window the norm of that window's mean (there a single frame's norm exceeds

@@ -83,7 +83,7 @@ def compose(run_dir: Path, out: Path = OUT) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m scripts.docsgen.servo_figure", description=__doc__)
-    parser.add_argument("run_dir", type=Path, help="output folder of a `ddvs demo` run (default of the demo: reports/demo)")
+    parser.add_argument("run_dir", type=Path, help="a `ddvs demo` run's folder (the demo's default: reports/demo)")
     parser.add_argument("--out", type=Path, default=OUT, help=f"PNG to write (default {OUT.relative_to(ROOT)})")
     args = parser.parse_args(argv)
     print(f"wrote {compose(args.run_dir, args.out)}")

@@ -1,0 +1,118 @@
+"""The documentation: generated pages up to date, the configuration reference complete, no commit hash, date,
+clock time or issue number outside the results pages, a README that stays short and whose links resolve, and the
+configuration examples of the guide valid."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from ddvs_service.service.config import ServiceConfig
+from ddvs_service.service.fleet_config import read_file
+from scripts.docsgen.__main__ import generated_pages, stale_pages
+from scripts.docsgen.config_reference import default_value, rows
+from scripts.docsgen.markdown import ROOT
+
+DOCS = ROOT / "docs"
+README = ROOT / "README.md"
+
+# What a reader outside the project cannot use: commit hashes (7–40 hex digits with a digit and a letter), dates,
+# clock times and the project's own issue numbers.
+FORBIDDEN = {
+    "commit hash": re.compile(r"\b(?=[0-9a-f]*\d)(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b"),
+    "date": re.compile(r"\b(19|20)\d\d-[01]\d-[0-3]\d\b"),
+    "clock time": re.compile(r"\b([01]?\d|2[0-3]):[0-5]\d(:[0-5]\d)?(\s*UTC)?\b(?![-–:\d])"),
+    "issue number": re.compile(r"\b[Ii]ssues? #?\d+|(?<![\w&])#\d+\b"),
+}
+
+
+def forbidden_mentions(text: str) -> list[str]:
+    """`line: kind 'match'` for every forbidden mention in `text`."""
+    return [f"{number}: {kind} {match.group(0)!r}"
+            for number, line in enumerate(text.splitlines(), 1)
+            for kind, pattern in FORBIDDEN.items()
+            for match in pattern.finditer(line)]
+
+
+def reader_pages() -> list[Path]:
+    """README.md, benchmarks/README.md and every page of docs/ except the dated results pages."""
+    pages = [README, ROOT / "benchmarks" / "README.md", *sorted(DOCS.rglob("*.md"))]
+    return [p for p in pages if DOCS / "results" not in p.parents]
+
+
+@pytest.mark.parametrize("text, kind", [
+    ("before 3c6cf65 no service wrote it", "commit hash"),
+    ("measured on 2026-12-03 at load 2", "date"),
+    ("seven runs (22:56–23:25 UTC)", "clock time"),
+    ("a restart at 14:54 took", "clock time"),
+    ("since issue 20 the stop rule", "issue number"),
+    ("its changelog, #605", "issue number"),
+])
+def test_forbidden_mentions_are_found(text: str, kind: str) -> None:
+    assert [m for m in forbidden_mentions(text) if kind in m], f"{kind} not found in {text!r}"
+
+
+@pytest.mark.parametrize("text", [
+    "a 200×150 template at 30 Hz, 1e-3 threshold, ratio 1:2",
+    "`H[2,2] = 1`, λ = 0.4, rmw_zenoh_cpp ≥ 0.2.4, tcp/127.0.0.1:7447, abcdefab",
+    "the decoupled error (16) over 2 cores, load average 1.5",
+])
+def test_ordinary_text_is_not_flagged(text: str) -> None:
+    assert forbidden_mentions(text) == []
+
+
+def test_no_commit_hash_date_or_issue_number_outside_the_results_pages() -> None:
+    found = [f"{p.relative_to(ROOT)}:{m}" for p in reader_pages() for m in forbidden_mentions(p.read_text("utf-8"))]
+    assert not found, "move these to a results page (docs/results/) or drop them:\n" + "\n".join(found)
+
+
+def test_generated_pages_are_up_to_date() -> None:
+    stale = [str(p.relative_to(ROOT)) for p in stale_pages()]
+    assert not stale, f"out of date (run `make docs` and commit): {stale}"
+
+
+def test_configuration_reference_lists_every_setting_with_its_default_and_range() -> None:
+    page = (DOCS / "reference" / "configuration.md").read_text(encoding="utf-8")
+    table_rows = {m.group(1): m.group(0) for m in re.finditer(r"^\| `([\w.]+)` \|.*$", page, re.MULTILINE)}
+    for name, info, _ in rows(ServiceConfig):
+        assert name in table_rows, f"configuration reference has no row for {name}"
+        row = table_rows[name]
+        default = default_value(info)
+        if isinstance(default, (bool, int, float, str)) and not isinstance(default, ServiceConfig):
+            assert f"`{json.dumps(default)}`" in row, f"{name}: default {default!r} missing from {row!r}"
+        for meta in info.metadata:
+            bound = next((getattr(meta, a) for a in ("gt", "ge", "lt", "le") if hasattr(meta, a)), None)
+            if bound is not None:
+                assert str(bound) in row, f"{name}: bound {bound} missing from {row!r}"
+
+
+def test_every_generated_page_is_in_the_site_navigation() -> None:
+    nav = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
+    missing = [str(p.relative_to(DOCS)) for p in generated_pages() if str(p.relative_to(DOCS)) not in nav]
+    assert not missing, f"generated pages not in mkdocs.yml's nav: {missing}"
+
+
+def test_readme_is_short_and_its_links_resolve() -> None:
+    text = README.read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 250, "README.md is a front page: at most 250 lines, details go to docs/"
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
+    broken = [t for t in targets if "://" not in t and not (ROOT / t).exists()]
+    assert not broken, f"README.md links to missing files: {broken}"
+
+
+def test_configuration_guide_examples_are_valid_configurations(tmp_path: Path) -> None:
+    page = (DOCS / "guide" / "configuration.md").read_text(encoding="utf-8")
+    examples = re.findall(r"```json\n(.*?)```", page, re.DOTALL)
+    assert examples, "the configuration guide has no JSON example"
+    for number, example in enumerate(examples):
+        path = tmp_path / f"example{number}.json"
+        path.write_text(example, encoding="utf-8")
+        base, robots, _ = read_file(path)  # raises ValueError naming what is wrong
+        base.check()
+        if robots:
+            for entry in robots:
+                settings = {k: v for k, v in entry.items() if k != "robot"}
+                base.merged(settings)
