@@ -116,3 +116,22 @@ def test_configuration_guide_examples_are_valid_configurations(tmp_path: Path) -
             for entry in robots:
                 settings = {k: v for k, v in entry.items() if k != "robot"}
                 base.merged(settings)
+
+
+@pytest.mark.parametrize("page", [README, DOCS / "guide" / "configuration.md"], ids=["README", "guide"])
+def test_configuration_tables_state_the_schemas_defaults(page: Path) -> None:
+    """A hand-written table row `| `setting` | `default` | …` gives the schema's one default of that setting."""
+    defaults = {name: default_value(info) for name, info, _ in rows(ServiceConfig)}
+    checked = 0
+    for name, cell in re.findall(r"^\| `([\w.]+)` \| `([^`|]+)` \|", page.read_text(encoding="utf-8"), re.MULTILINE):
+        if name not in defaults:
+            continue
+        default = defaults[name]
+        expected = list(default) if isinstance(default, tuple) else default
+        try:
+            stated = json.loads(cell)
+        except json.JSONDecodeError:
+            stated = cell  # a bare word: a string setting (`planar`)
+        assert stated == expected, f"{page.name}: `{name}` default {cell}, the schema's is {default!r}"
+        checked += 1
+    assert checked >= 5, f"{page.name}: expected a configuration table"

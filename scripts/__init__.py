@@ -1,0 +1,1 @@
+"""Project scripts: the set-up (setup.sh), development certificates and the documentation generators (docsgen)."""
