@@ -35,14 +35,14 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 # The documentation site (docs/, mkdocs.yml): regenerate the reference pages from the code, then build it into site/
-# (open site/index.html). docs-check builds it strict without writing any page (make test runs it).
+# (open site/index.html). docs-check builds it strictly without regenerating any page (make test runs it).
 export NO_MKDOCS_2_WARNING := 1
 docs: setup
 	$(PY) -m scripts.docsgen
 	$(VENV)/bin/mkdocs build --strict
 
 docs-check: setup
-	$(VENV)/bin/mkdocs build --strict --quiet
+	$(VENV)/bin/mkdocs build --strict  # not --quiet: it hides the warnings that --strict counts
 
 # The speed benchmarks (benchmarks/README.md): each prints its table with the machine and its load average.
 BENCHES ?= bench_registration bench_general bench_global_init
