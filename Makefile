@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test test-fast typecheck lint docs docs-check bench clean certs
+.PHONY: setup demo test test-fast typecheck lint docs bench clean certs
 
 setup:
 	@bash scripts/setup.sh
@@ -18,7 +18,7 @@ test: setup
 	@echo "[test] mypy (pyproject.toml, [tool.mypy])"
 	$(VENV)/bin/mypy
 	@echo "[test] documentation site (mkdocs build --strict: no broken link, no missing page)"
-	$(MAKE) --no-print-directory docs-check
+	$(MAKE) --no-print-directory docs
 	@echo "[test] pytest (every test, slow ones included; the kernels on Vulkan too: docs/gpu.md)"
 	DDVS_REQUIRE_DEVICES=$${DDVS_REQUIRE_DEVICES:-vulkan} $(PY) -m pytest -q
 
@@ -34,15 +34,13 @@ typecheck: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 
-# The documentation site (docs/, mkdocs.yml): regenerate the reference pages from the code, then build it into site/
-# (open site/index.html). docs-check builds it strictly without regenerating any page (make test runs it).
+# The documentation site (docs/, mkdocs.yml): regenerate the reference pages from the code (docs/reference/), then
+# build it strictly into site/ (open site/index.html). make test runs it: a change to a parser, a setting, a message
+# or a docstring shows as a changed page to commit. Not --quiet: it hides the warnings that --strict counts.
 export NO_MKDOCS_2_WARNING := 1
 docs: setup
 	$(PY) -m scripts.docsgen
 	$(VENV)/bin/mkdocs build --strict
-
-docs-check: setup
-	$(VENV)/bin/mkdocs build --strict  # not --quiet: it hides the warnings that --strict counts
 
 # The speed benchmarks (benchmarks/README.md): each prints its table with the machine and its load average.
 BENCHES ?= bench_registration bench_general bench_global_init

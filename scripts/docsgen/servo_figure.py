@@ -1,7 +1,7 @@
 """The README's figure: one servo converging — the camera's first view beside the reference, the control error
 and the camera's 3-D trajectory — from the bag of a `ddvs demo` run.
 
-Run: `ddvs demo --out reports/demo && python -m scripts.docsgen.servo_figure reports/demo` (`make servo-figure`);
+Run: `ddvs demo --out reports/demo && python -m scripts.docsgen.servo_figure reports/demo`;
 writes `docs/images/servo-converging.png`.
 """
 
