@@ -250,8 +250,12 @@ def main() -> None:
         if row["phase"] == "malformed":  # the same frames: the same twists?
             common = sorted(set(answered) & set(twists[0]))
             row["same_frames_answered"] = len(common)
-            row["largest_twist_difference"] = max((float(np.max(np.abs(answered[k] - twists[0][k])))
-                                                   for k in common), default=None)
+            diffs = [float(np.max(np.abs(answered[k] - twists[0][k]))) for k in common]
+            row["largest_twist_difference"] = max(diffs, default=None)
+            row["frames_with_another_twist"] = sum(d > 0.0 for d in diffs)
+            row["first_frame_with_another_twist"] = next((k for k, d in zip(common, diffs, strict=True) if d > 0.0),
+                                                         None)
+            row["frames_not_answered"] = sorted(set(twists[0]) - set(answered))
             row["largest_twist_component"] = max((float(np.max(np.abs(twists[0][k]))) for k in common),
                                                  default=None)
         print(json.dumps(row), flush=True)
