@@ -66,9 +66,11 @@ def _publish(port: int, stop: threading.Event, hz: float = 50.0, rejected_per_st
 
 
 def test_snapshot_has_the_newest_status_and_the_arrival_rates():
+    """Rates of arrival, and of the counters of a service under a flood: ~100 rejected frames per status at 50
+    statuses/s (5000 frames/s) and one superseded frame every other status, shown as frames/s."""
     port = free_port()
     stop = threading.Event()
-    publisher = threading.Thread(target=_publish, args=(port, stop), daemon=True)
+    publisher = threading.Thread(target=_publish, args=(port, stop, 50.0, 100), daemon=True)
     publisher.start()
     try:
         time.sleep(0.3)
@@ -86,31 +88,10 @@ def test_snapshot_has_the_newest_status_and_the_arrival_rates():
     rates = snap["rates_hz"]
     assert 30 <= rates["status"] <= 52 and 30 <= rates["twists"] <= 52, rates
     assert 15 <= rates["frames"] <= 26, rates
+    assert 0.6 * 5000 <= rates["rejected"] <= 5000 * 1.1 and 0.6 * 25 <= rates["dropped"] <= 25 * 1.1, rates
     text = render(snap, KEYS.base)
     assert "SERVOING" in text and "1.000e-02" in text and "registration 5.00" in text and "backend      vulkan" in text
-
-
-def test_a_flood_shows_as_rates_of_rejected_and_superseded_frames():
-    """A service under a flood reports ~100 rejected frames per status at 50 statuses/s (5000 frames/s) and one
-    superseded frame every other status: the monitor shows both as frames/s."""
-    port = free_port()
-    stop = threading.Event()
-    publisher = threading.Thread(target=_publish, args=(port, stop, 50.0, 100), daemon=True)
-    publisher.start()
-    try:
-        time.sleep(0.3)
-        with open_session(SessionConfig(connect=[f"tcp/127.0.0.1:{port}"])) as session:
-            monitor = Monitor(session, KEYS, window=1.0)
-            assert monitor.status_received.wait(5.0)
-            time.sleep(1.2)
-            snap = monitor.snapshot()
-            monitor.close()
-    finally:
-        stop.set()
-        publisher.join(5)
-    rates = snap["rates_hz"]
-    assert 0.6 * 5000 <= rates["rejected"] <= 5000 * 1.1 and 0.6 * 25 <= rates["dropped"] <= 25 * 1.1, rates
-    assert "rejected" in render(snap, KEYS.base)
+    assert "rejected" in text and "superseded" in text
 
 
 def _once(port: int, timeout: float) -> subprocess.CompletedProcess:

@@ -48,14 +48,18 @@ class Stream:
         self._stop.set()
         self._thread.join()
 
+    def payload(self, k: int) -> bytes:
+        """The `k`-th frame (0, 1, …), stamped 1 s + `k` periods (recorded in `stamps`)."""
+        stamp = STAMP0_NS + k * int(self.period * 1e9)
+        self.stamps.append(stamp)
+        return encode_image(image_from_array(self.frames[k % len(self.frames)], "mono8",
+                                             Header(Time.from_ns(stamp), "camera")))
+
     def _run(self) -> None:
         t_next = time.monotonic()
         k = 0
         while not self._stop.is_set():
-            stamp = STAMP0_NS + k * int(self.period * 1e9)
-            header = Header(Time.from_ns(stamp), "camera")
-            self.op.frames.put(encode_image(image_from_array(self.frames[k % len(self.frames)], "mono8", header)))
-            self.stamps.append(stamp)
+            self.op.frames.put(self.payload(k))
             k += 1
             t_next += self.period
             time.sleep(max(t_next - time.monotonic(), 0.0))
