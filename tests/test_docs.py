@@ -16,6 +16,7 @@ from scripts.docsgen.__main__ import generated_pages
 from scripts.docsgen.config_reference import default_value, rows
 from scripts.docsgen.config_reference import render as render_configuration
 from scripts.docsgen.markdown import ROOT
+from scripts.docsgen.results_figures import draw, fleet_scaling, registration_speed
 
 DOCS = ROOT / "docs"
 README = ROOT / "README.md"
@@ -131,3 +132,14 @@ def test_configuration_tables_state_the_schemas_defaults(page: Path) -> None:
         assert stated == expected, f"{page.name}: `{name}` default {cell}, the schema's is {default!r}"
         checked += 1
     assert checked >= 5, f"{page.name}: expected a configuration table"
+
+
+def test_results_figures_are_drawn_from_the_results_tables(tmp_path: Path) -> None:
+    speed = registration_speed()
+    assert speed and all(0 < row["ours"] < row["ECC"] < row["numpy"] for row in speed.values()), speed
+    fleet = fleet_scaling()
+    assert [row["robots"] for row in fleet] == sorted(row["robots"] for row in fleet) and len(fleet) >= 2
+    assert all(row["shared_rss_mb"] > 0 and row["separate_p99_ms"] >= row["separate_median_ms"] for row in fleet)
+    written = draw(tmp_path)
+    assert [p.name for p in written] == ["speed.png", "fleet.png"]
+    assert all(p.read_bytes().startswith(b"\x89PNG") for p in written)

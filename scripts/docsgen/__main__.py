@@ -1,11 +1,11 @@
-"""`python -m scripts.docsgen`: write every generated page of the documentation site (`make docs`)."""
+"""`python -m scripts.docsgen`: write every generated page and figure of the documentation site (`make docs`)."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-from scripts.docsgen import api_reference, cli_reference, config_reference, protocol_reference
+from scripts.docsgen import api_reference, cli_reference, config_reference, protocol_reference, results_figures
 from scripts.docsgen.markdown import ROOT
 
 DOCS = ROOT / "docs"
@@ -27,6 +27,8 @@ def main() -> int:
     for path, text in generated_pages().items():
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text, encoding="utf-8")
+        print(f"wrote {path.relative_to(ROOT)}")
+    for path in results_figures.draw():
         print(f"wrote {path.relative_to(ROOT)}")
     return 0
 
