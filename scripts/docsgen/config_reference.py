@@ -46,10 +46,10 @@ def type_name(annotation: Any) -> str:
     return getattr(annotation, "__name__", str(annotation))
 
 
-def value_range(info: FieldInfo) -> str:
-    """The field's bounds (`> 0`, `≥ 1, ≤ 232`), its choices for a literal type, or empty."""
+def _bounds(metadata: list[Any]) -> list[str]:
+    """The bounds among a field's or a type's metadata: `> 0`, `≤ 8`, `length ≥ 1`."""
     parts = []
-    for meta in info.metadata:
+    for meta in metadata:
         for kind, attr, symbol in _BOUNDS:
             if isinstance(meta, kind):
                 parts.append(f"{symbol} {getattr(meta, attr)}")
@@ -57,6 +57,40 @@ def value_range(info: FieldInfo) -> str:
             parts.append(f"length ≥ {meta.min_length}")
         if isinstance(meta, at.MaxLen):
             parts.append(f"length ≤ {meta.max_length}")
+        if isinstance(meta, FieldInfo):
+            parts += _bounds(meta.metadata)
+    return parts
+
+
+def _element_bounds(annotation: Any) -> str:
+    """The bounds of the elements of a tuple or list type: `each ≥ 1, ≤ 4`, or per run of equal entries
+    (`entries 1–2: ≥ 0; entries 3–4: ≥ 1`); empty when the elements have none."""
+    origin = get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return next((b for arg in get_args(annotation) if (b := _element_bounds(arg))), "")
+    if origin not in (tuple, list):
+        return ""
+    per_entry = [", ".join(_bounds(list(get_args(arg)[1:]))) if get_origin(arg) is typing.Annotated else ""
+                 for arg in get_args(annotation) if arg is not Ellipsis]
+    if not any(per_entry):
+        return ""
+    if len(set(per_entry)) == 1:
+        return f"each {per_entry[0]}"
+    runs: list[tuple[int, int, str]] = []
+    for i, bounds in enumerate(per_entry, 1):
+        if runs and runs[-1][2] == bounds:
+            runs[-1] = (runs[-1][0], i, bounds)
+        else:
+            runs.append((i, i, bounds))
+    return "; ".join(f"entries {a}–{b}: {bounds}" if a != b else f"entry {a}: {bounds}" for a, b, bounds in runs)
+
+
+def value_range(info: FieldInfo) -> str:
+    """The field's bounds (`> 0`, `≥ 1, ≤ 232`), its elements' (`each ≥ 1, ≤ 4`), its choices, or empty."""
+    parts = _bounds(info.metadata)
+    elements = _element_bounds(info.annotation)
+    if elements:
+        parts.append(elements)
     for kind in (info.annotation, *get_args(info.annotation)):
         if get_origin(kind) is Literal:
             parts.append("one of " + ", ".join(str(v) for v in get_args(kind)))
