@@ -17,8 +17,8 @@ wake-up.
 State load (`--hogs N`): N busy-loop processes at normal priority run while measuring (two on a 2-core host: every
 core contested); `--realtime-priority P` runs the service under SCHED_FIFO, `--realtime-chain` the camera publisher
 and the receiver too (the hogs stay at normal priority).
-Never stale: the service withholds a twist that would go out after two newer frames arrived (status counter
-`stale`); such frames have no twist and count as not answered.
+Never stale: the service withholds a twist that would go out more than `frame_timeout_s` after its frame arrived
+with two newer frames waiting (status counter `stale`); such frames have no twist and count as not answered.
 
 Watchers (`--watchers none record foxglove`, issue 19): while measuring, `ddvs record` (a bag of every channel,
 raw frames) or `ddvs monitor --foxglove` with a WebSocket client subscribed to every channel (the residual image

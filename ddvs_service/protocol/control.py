@@ -149,9 +149,10 @@ class Latency(_Message):
 
 class Counters(_Message):
     """Frames since the service started, each counted once, none ever decreasing: `frames` processed (registered),
-    `dropped` (superseded by a newer frame before processing), `rejected` (failed to decode or validate), `stale`
-    (processed, but the twist withheld because two newer frames had arrived by then; also in `frames`) and `idle`
-    (arrived while IDLE, not answered)."""
+    `dropped` (superseded by a newer valid frame before processing), `rejected` (failed to decode or validate, counted
+    as they arrive; camera infos too), `stale` (processed, but the twist withheld: it would have gone out more than
+    `frame_timeout_s` after the frame arrived with two newer frames waiting, or the frame is older than a twist
+    already published; also in `frames`) and `idle` (arrived while IDLE, not answered)."""
 
     frames: Count
     dropped: Count
