@@ -128,13 +128,14 @@ def test_a_sweep_on_a_two_node_cluster_journals_what_the_sequential_sweep_does(t
 
 @pytest.fixture
 def sweep_cli(tmp_path: Path) -> Iterator[subprocess.Popen[str]]:
-    """`ddvs experiment domain` of `SWEEP` on a local Ray of 2 workers, into `tmp_path`; killed if still running."""
+    """`ddvs experiment domain` of `SWEEP` on a local Ray of 2 workers, into `tmp_path`, in a process group of its own
+    (as a terminal's job: Ctrl-C signals the whole group); the group is killed if still running."""
     proc = subprocess.Popen([sys.executable, "-m", "ddvs", *SWEEP_ARGS, "--workers", "2", "--out", str(tmp_path)],
                             cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
     yield proc
     if proc.poll() is None:
-        proc.kill()
+        os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate()
 
 
@@ -181,7 +182,7 @@ def test_ctrl_c_stops_the_sweep_keeping_the_finished_trials(tmp_path, sweep_cli,
     journal = tmp_path / "trials.jsonl"
     _wait_for_records(journal, sweep_cli)
     ray_processes = psutil.Process(sweep_cli.pid).children(recursive=True)
-    sweep_cli.send_signal(signal.SIGINT)
+    os.killpg(sweep_cli.pid, signal.SIGINT)  # Ctrl-C: the driver, Ray's processes and its workers
     _, err = sweep_cli.communicate(timeout=120)
     assert sweep_cli.returncode == 130, err
     assert "stopped: the finished trials are kept" in err
@@ -194,3 +195,17 @@ def test_ctrl_c_stops_the_sweep_keeping_the_finished_trials(tmp_path, sweep_cli,
     resumed = _resume(tmp_path)
     assert resumed.returncode == 0, resumed.stderr
     assert journal.read_text() == sequential_journal
+
+
+@pytest.mark.slow
+def test_the_robustness_matrix_on_ray_journals_what_it_does_sequentially(tmp_path):
+    """Records with per-image traces (lists of floats and states) come back from the workers unchanged: the matrix of
+    three conditions (image transforms, dropped frames, latency) on a local Ray of 2 workers journals the same file
+    as one run after another."""
+    from orchestration.experiment_robustness import RobustnessSettings, run_matrix
+
+    settings = RobustnessSettings(conditions=("hard_combination", "drop_10pct", "latency_2"), max_images=12)
+    sequential = run_matrix(settings, tmp_path / "sequential", workers=SEQUENTIAL)
+    on_ray = run_matrix(settings, tmp_path / "ray", workers=Workers(count=2))
+    assert len(on_ray) == len(sequential) == 3 and all(len(run.error_norms) == run.images > 0 for run in on_ray)
+    assert (tmp_path / "ray" / "runs.jsonl").read_bytes() == (tmp_path / "sequential" / "runs.jsonl").read_bytes()
