@@ -71,7 +71,11 @@ class FoxgloveBridge(ServerListener):
         self._lock = threading.Lock()
         self.server = foxglove.start_server(name=f"ddvs {keys.base}", host="127.0.0.1", port=0, context=self.context,
                                             server_listener=self)
-        self.relay = SubprotocolRelay(host, port, self.server.port)  # the public socket, either protocol name
+        try:
+            self.relay = SubprotocolRelay(host, port, self.server.port)  # the public socket, either protocol name
+        except OSError:  # host:port taken or not ours
+            self.server.stop()
+            raise
         self.port = self.relay.port
 
     def _channel(self, spec: ChannelSpec) -> foxglove.Channel:

@@ -47,8 +47,12 @@ class SubprotocolRelay:
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="foxglove-relay", daemon=True)
         self._thread.start()
-        self._server = asyncio.run_coroutine_threadsafe(
-            asyncio.start_server(self._relay, host, port, limit=MAX_HEAD_BYTES), self._loop).result(timeout=10.0)
+        try:
+            self._server = asyncio.run_coroutine_threadsafe(
+                asyncio.start_server(self._relay, host, port, limit=MAX_HEAD_BYTES), self._loop).result(timeout=10.0)
+        except OSError:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            raise
         self.port: int = self._server.sockets[0].getsockname()[1]
 
     async def _relay(self, client_in: asyncio.StreamReader, client_out: asyncio.StreamWriter) -> None:
