@@ -123,8 +123,17 @@ def rows(model: type[BaseModel], prefix: str = "") -> list[tuple[str, FieldInfo,
     return out
 
 
-def _description(info: FieldInfo) -> str:
-    return cell(info.description or "")
+def start_only(info: FieldInfo) -> bool:
+    """Whether the schema marks the setting as read at start only (`set_config` refuses to change it)."""
+    extra = info.json_schema_extra
+    return isinstance(extra, dict) and extra.get("start_only") is True
+
+
+def _meaning(info: FieldInfo) -> str:
+    text = info.description or ""
+    if start_only(info):
+        text += " *Read at start: a run-time change is refused.*"
+    return cell(text.strip())
 
 
 def _section(model: type[BaseModel], title: str, prefix: str) -> str:
@@ -134,7 +143,7 @@ def _section(model: type[BaseModel], title: str, prefix: str) -> str:
     body.append(table(
         ["setting", "type", "default", "range", "meaning"],
         [[code(prefix + name), cell(type_name(info.annotation)), _default_text(info), cell(value_range(info)),
-          _description(info)] for name, info in model.model_fields.items()],
+          _meaning(info)] for name, info in model.model_fields.items()],
     ))
     for name, info in model.model_fields.items():
         for nested in _models(info.annotation):
