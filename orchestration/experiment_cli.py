@@ -107,6 +107,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        Workers(args.workers, args.cluster)  # refused here, before any trial, with the reason
+    except ValueError as error:
+        print(f"ddvs experiment {args.experiment}: {error}", file=sys.stderr)
+        return 2
+    try:
         return run_experiment(args)
     except TrialsFailed as failed:
         print(failed, file=sys.stderr)

@@ -47,6 +47,16 @@ def test_workers_refuse_nonsense():
         Workers(count=1, cluster="127.0.0.1:6379")
 
 
+@pytest.mark.parametrize(("options", "reason"), [(["--workers", "0"], "at least 1"),
+                                                 (["--workers", "1", "--cluster", "auto"], "no --cluster")])
+def test_the_command_refuses_nonsense_workers_before_any_trial(tmp_path, capsys, options, reason):
+    from ddvs.cli import main
+
+    assert main([*SWEEP_ARGS, *options, "--out", str(tmp_path / "out")]) == 2
+    assert reason in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 @dataclass
 class Square:
     n: int
