@@ -1,6 +1,7 @@
-"""The documentation: the generated configuration reference complete, no commit hash, date,
-clock time or issue number outside the results pages, a README that stays short and whose links resolve, and the
-configuration examples of the guide valid."""
+"""The documentation: the generated references complete (every subcommand, setting with its default and range,
+key and message), their figures drawn from the results tables, no commit hash, date, clock time or issue number
+outside the results pages, a README that stays short and whose links resolve, and the configuration examples and
+tables of the guide and the README true to the schema."""
 
 from __future__ import annotations
 
@@ -10,8 +11,12 @@ from pathlib import Path
 
 import pytest
 
+from ddvs.cli import SUBCOMMANDS
+from ddvs_service.protocol.keys import TOPICS
+from ddvs_service.protocol.schemas import SCHEMA_MODELS
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.fleet_config import read_file
+from scripts.docsgen import cli_reference, protocol_reference
 from scripts.docsgen.__main__ import generated_pages
 from scripts.docsgen.config_reference import default_value, rows
 from scripts.docsgen.config_reference import render as render_configuration
@@ -143,3 +148,17 @@ def test_results_figures_are_drawn_from_the_results_tables(tmp_path: Path) -> No
     written = draw(tmp_path)
     assert [p.name for p in written] == ["speed.png", "fleet.png"]
     assert all(p.read_bytes().startswith(b"\x89PNG") for p in written)
+
+
+def test_cli_reference_documents_every_subcommand_and_option() -> None:
+    page = cli_reference.render()
+    for name in SUBCOMMANDS:
+        assert f"## `ddvs {name}`" in page, f"no section for ddvs {name}"
+    serve_options = ["--config", "--state-dir", "--fresh", "--no-warmup", "--warmup-only", "--connect"]
+    assert all(f"`{option}" in page for option in serve_options)
+
+
+def test_protocol_reference_documents_every_key_and_message() -> None:
+    page = protocol_reference.render()
+    assert all(f"`{topic.suffix}`" in page for topic in TOPICS.values())
+    assert all(f"(`schemas/{name}.json`)" in page for name in SCHEMA_MODELS)
