@@ -18,6 +18,7 @@ from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.fleet_config import read_file
 from scripts.docsgen import cli_reference, protocol_reference
 from scripts.docsgen.__main__ import generated_pages
+from scripts.docsgen.api_reference import markdown_text
 from scripts.docsgen.config_reference import default_value, rows
 from scripts.docsgen.config_reference import render as render_configuration
 from scripts.docsgen.markdown import ROOT
@@ -162,3 +163,8 @@ def test_protocol_reference_documents_every_key_and_message() -> None:
     page = protocol_reference.render()
     assert all(f"`{topic.suffix}`" in page for topic in TOPICS.values())
     assert all(f"(`schemas/{name}.json`)" in page for name in SCHEMA_MODELS)
+
+
+def test_api_reference_keeps_angle_brackets_of_docstrings_visible() -> None:
+    text = "keys <prefix>/<robot>, `<prefix>/x` and `a\nb <c>` d <e>\n    block <f>"
+    assert markdown_text(text) == "keys &lt;prefix>/&lt;robot>, `<prefix>/x` and `a\nb <c>` d &lt;e>\n    block <f>"

@@ -45,9 +45,28 @@ def _public(name: str) -> bool:
     return not name.startswith("_")
 
 
+def markdown_text(docstring: str) -> str:
+    """A docstring as Markdown: `<` outside code spans and indented code blocks escaped, so that `<prefix>/<robot>`
+    reads as written instead of vanishing as an HTML tag."""
+    out = []
+    in_code = False  # inside a `code span`, which may run over several lines
+    for line in docstring.splitlines():
+        if not in_code and line.startswith("    "):
+            out.append(line)  # an indented code block
+            continue
+        parts = line.split("`")
+        for i in range(len(parts)):
+            if not in_code:
+                parts[i] = parts[i].replace("<", "&lt;")
+            if i < len(parts) - 1:
+                in_code = not in_code
+        out.append("`".join(parts))
+    return "\n".join(out)
+
+
 def _doc(node: ast.AST) -> str:
     text = ast.get_docstring(node)  # type: ignore[arg-type]
-    return f"{text.strip()}\n" if text else ""
+    return f"{markdown_text(text.strip())}\n" if text else ""
 
 
 def _function(node: ast.FunctionDef | ast.AsyncFunctionDef, level: int, owner: str = "") -> str:
