@@ -22,7 +22,7 @@ from functools import partial
 from pathlib import Path
 
 from orchestration.trials import TrialsFailed, run_trials
-from orchestration.workers import Workers
+from orchestration.workers import ClusterUnreachable, Workers
 
 # The geometry sources offered on the command line; keep in step with experiment_synthetic.GEOMETRY_SOURCES
 # (listed here so that `ddvs --help` does not import numpy and the plant).
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         return run_experiment(args)
-    except TrialsFailed as failed:
+    except (TrialsFailed, ClusterUnreachable) as failed:
         print(failed, file=sys.stderr)
         return 1
     except KeyboardInterrupt:

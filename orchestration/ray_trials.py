@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 import ray
 from ray.exceptions import RayError
 
-from orchestration.workers import Failure, Workers
+from orchestration.workers import ClusterUnreachable, Failure, Workers
 
 K = TypeVar("K", bound=Hashable)
 R = TypeVar("R")
@@ -72,7 +72,13 @@ def _connect(workers: Workers) -> None:
     """Join the cluster at `workers.cluster`, or start a local Ray with `workers.count` CPUs (default every core) and
     a small object store. Worker output stays in Ray's logs: this process's stdout carries the records."""
     if workers.cluster is not None:
-        ray.init(address=workers.cluster, log_to_driver=False, configure_logging=False)
+        try:
+            ray.init(address=workers.cluster, log_to_driver=False, configure_logging=False)
+        except ConnectionError as error:
+            raise ClusterUnreachable(
+                f"cannot join the Ray cluster at {workers.cluster!r} ({error}); expected a running cluster whose head "
+                "listens there, this host one of its nodes, and RAY_AUTH_MODE / RAY_AUTH_TOKEN as on the cluster "
+                "(docs/sweeps.md)") from error
         return
     ray.init(num_cpus=workers.count or os.cpu_count() or 1, object_store_memory=OBJECT_STORE_BYTES,
              include_dashboard=False, log_to_driver=False, configure_logging=False)

@@ -1,5 +1,6 @@
 """Where the trials of an experiment run (`Workers`: in this process, on a local Ray, on a cluster) and how a trial
-that gave no record ended (`Failure`); `orchestration.trials` runs them."""
+that gave no record ended (`Failure`) or why the cluster could not be joined (`ClusterUnreachable`);
+`orchestration.trials` runs them."""
 
 from __future__ import annotations
 
@@ -31,3 +32,7 @@ class Failure:
     """A trial that ended without a record: what went wrong (the exception, with the trial's traceback)."""
 
     message: str
+
+
+class ClusterUnreachable(RuntimeError):
+    """The Ray cluster named by `Workers.cluster` could not be joined."""
