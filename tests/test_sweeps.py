@@ -26,11 +26,15 @@ from orchestration.trials import TrialsFailed, run_trials
 from orchestration.workers import SEQUENTIAL, Workers
 
 ROOT = Path(__file__).resolve().parents[1]
-# A small sweep: 6 trials of a few seconds each (too short to converge: each runs its 30 images).
-SWEEP = DomainSettings(targets=("planar",), laws=("ddvs",), sizes=(0.5, 3.0), trials=3, max_images=30, noise=1.0,
-                       seed=7)
-SWEEP_ARGS = ["experiment", "domain", "--target", "planar", "--law", "ddvs", "--trials", "3", "--sizes", "0.5", "3",
-              "--max-images", "30", "--noise", "1", "--seed", "7"]
+# A small sweep: 16 trials of a few seconds each (too short to converge: each runs its 30 images; longer closed loops
+# drift apart by the rounding of Taichi's sums over 2 threads against 1). So many that a Ctrl-C sent on the first
+# journalled trial lands before the last one ends, on a quiet host too.
+TRIALS = 8
+SWEEP = DomainSettings(targets=("planar",), laws=("ddvs",), sizes=(0.5, 3.0), trials=TRIALS, max_images=30,
+                       noise=1.0, seed=7)
+SWEEP_ARGS = ["experiment", "domain", "--target", "planar", "--law", "ddvs", "--trials", str(TRIALS), "--sizes", "0.5",
+              "3", "--max-images", "30", "--noise", "1", "--seed", "7"]
+N_TRIALS = 2 * TRIALS
 STORE = 80 * 1024**2  # each Ray node's object store (bytes)
 
 
@@ -133,7 +137,7 @@ def test_a_sweep_on_a_two_node_cluster_journals_what_the_sequential_sweep_does(t
     finally:
         cluster.shutdown()
     assert (tmp_path / "trials.jsonl").read_text() == sequential_journal
-    assert [(t.size, t.trial) for t in trials] == [(s, k) for k in range(3) for s in (0.5, 3.0)]
+    assert [(t.size, t.trial) for t in trials] == [(s, k) for k in range(TRIALS) for s in (0.5, 3.0)]
 
 
 @pytest.fixture
@@ -179,11 +183,11 @@ def test_a_killed_worker_loses_no_finished_trial_and_the_resumed_sweep_completes
     assert sweep_cli.returncode == 1, err
     assert "1 trial(s) failed" in err and "run the same command again" in err
     lines = journal.read_text().splitlines()
-    assert len(lines) == 5 and set(lines) < set(sequential_journal.splitlines())  # every other trial, as sequential
+    assert len(lines) == N_TRIALS - 1 and set(lines) < set(sequential_journal.splitlines())  # the others, as sequential
 
     resumed = _resume(tmp_path)
     assert resumed.returncode == 0, resumed.stderr
-    assert "1 trial(s) to run, 5 already journalled" in resumed.stderr
+    assert f"1 trial(s) to run, {N_TRIALS - 1} already journalled" in resumed.stderr
     assert journal.read_text() == sequential_journal
 
 
@@ -199,7 +203,7 @@ def test_ctrl_c_stops_the_sweep_keeping_the_finished_trials(tmp_path, sweep_cli,
     _, alive = psutil.wait_procs(ray_processes, timeout=30)
     assert not alive, f"Ray processes left running: {alive}"
     lines = journal.read_text().splitlines()
-    assert 1 <= len(lines) < 6
+    assert 1 <= len(lines) < N_TRIALS
     assert lines == [line for line in sequential_journal.splitlines() if line in lines]  # in the sweep's order
 
     resumed = _resume(tmp_path)
