@@ -261,9 +261,9 @@ def test_a_view_magnified_beyond_the_peaks_scale_range_is_found() -> None:
 
 @pytest.mark.slow
 def test_planar_fits_of_a_curved_target_that_differ_are_reconciled_by_the_general_model() -> None:
-    """On the saddle seen 0.4 m / 120° away (trial 5), two planar fits of the curved patch 4 px apart both score as
-    good solutions (margin 0.03 < 0.1: LOST as ambiguous); step 5 refines the winner with eq. (2), which removes the
-    parallax the planar fits leave: OK, near the true plane-induced `G`."""
+    """On the saddle seen 0.4 m / 120° away (trial 5), two planar fits of the curved patch farther apart than
+    `distinct_px` both score as good solutions (margin 0.03 < 0.1: LOST as ambiguous); step 5 refines the winner with
+    eq. (2), which removes the parallax the planar fits leave: OK, near the true plane-induced `G`."""
     from orchestration.experiment_domain import ROI as DOMAIN_ROI
 
     reference, current, G = _domain_start("saddle", 8.0, 5)

@@ -68,10 +68,6 @@ class GeneralTracker:
         return cls(GeneralRegistration.prepare(reference, roi=roi, mask=mask, config=config), rho=rho)
 
     @property
-    def engine(self) -> GeneralRegistration:
-        return self._problem
-
-    @property
     def basis(self) -> ParallaxBasis:
         """The parallax basis of ρ*."""
         return self._problem.basis

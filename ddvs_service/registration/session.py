@@ -101,10 +101,6 @@ class TrackingSession:
         return self._tracker.G
 
     @property
-    def tracker(self) -> ModelTracker:
-        return self._tracker
-
-    @property
     def acquisition(self) -> Reacquisition:
         return self._acquire
 
