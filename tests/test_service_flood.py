@@ -113,13 +113,14 @@ def test_a_flood_of_valid_frames_is_superseded_not_queued(tmp_path: Path) -> Non
     with servoing(tmp_path) as (op, img, _):
         with Stream(op, servo_frames(img), rate_hz=1000.0) as stream:
             time.sleep(3.0)
-            n_answered = len(op.twist_stamps)
+        n_answered = len(op.twist_stamps)  # the camera has stopped: every frame is published
         time.sleep(0.5)
         final = op.command(op="get_state").data["last_status"]
     during = set(op.twist_stamps[:n_answered]) & set(stream.stamps)
     assert len(during) >= 3 * 5, f"{len(during)} frames answered in 3 s of a flood"  # the servo keeps answering
     after = set(op.twist_stamps[n_answered:]) - set(op.twist_stamps[:n_answered])
-    assert len(after) <= 2, f"{len(after)} frames answered after the flood ended: frames were queued"
+    # at most a twist on its way, the frame being registered and the latest one waiting (a queue answers hundreds)
+    assert len(after) <= 3, f"{len(after)} frames answered after the flood ended: frames were queued"
     assert final["counters"]["dropped"] > len(stream.stamps) / 2, (final["counters"], len(stream.stamps))
     assert all(b >= a for a, b in pairwise(op.twist_stamps)), "answered out of order"
 
