@@ -37,6 +37,9 @@ if TYPE_CHECKING:  # the modules themselves are imported by `run`, so that `ddvs
     from ddvs_service.registration.result import RegistrationResult
 
 
+ONE_SHOT_ITERATIONS = 100  # per level; `RegistrationConfig.max_iterations` bounds a stream's frame instead
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ddvs_service.registration.config import RegistrationConfig  # the schema's defaults (pydantic, no Taichi)
     from ddvs_service.registration.general_config import GeneralConfig
@@ -54,6 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "with --robust huber keeps the basin wider, or start with --init global)")
     parser.add_argument("--robust", choices=("huber", "tukey", "none"), default=engine.robust,
                         help="M-estimator (default %(default)s)")
+    parser.add_argument("--max-iterations", type=int, default=ONE_SHOT_ITERATIONS, metavar="N",
+                        help="Gauss-Newton iterations per pyramid level at most (default %(default)s: from identity, "
+                             "Tukey's reweighting with a re-estimated scale contracts slowly at full resolution, "
+                             "where a stream's warm-started frames need few)")
     parser.add_argument("--gamma", type=float, default=engine.gamma,
                         help="camera response exponent: register irradiance 255 (I/255)^GAMMA (default %(default)s)")
     parser.add_argument("--defocus", default="0", metavar="R|search",
@@ -121,8 +128,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             G0 = None if args.init is None else np.loadtxt(args.init).reshape(3, 3)
         defocus = _defocus(args.defocus)
-        config = RegistrationConfig(levels=args.levels, gain_grid=_grid(args.gain_grid), robust=args.robust,
-                                    gamma=args.gamma, defocus_px=0.0 if defocus is None else defocus)
+        config = RegistrationConfig(levels=args.levels, max_iterations=args.max_iterations,
+                                    gain_grid=_grid(args.gain_grid), robust=args.robust, gamma=args.gamma,
+                                    defocus_px=0.0 if defocus is None else defocus)
         roi = None if args.roi is None else tuple(args.roi)
         if defocus is None and args.model == "general":
             raise ValueError("--defocus search estimates the defocus with the planar model; give a radius with "

@@ -43,3 +43,27 @@ def test_blurred_bikes_cold_start_reaches_the_optimum(seq, k, size):
     warm = register(ref, cur, roi=roi, G0=truth, config=COLD)
     assert corner_error(cold.H, warm.H, roi) <= 0.05
     assert corner_error(truth, cold.H, roi) <= 3.0
+
+
+@pytest.mark.parametrize("seq, k, roi", [("bikes", 4, (200, 150, 400, 300)), ("boat", 2, None)])
+def test_the_register_command_converges_on_the_shipped_pairs_with_its_defaults(seq, k, roi, capsys):
+    """`ddvs register img1 imgk [--roi …]` as a new user first types it (the schema's 3×3 gains and Tukey): exit 0
+    and the ground truth's corners; with the stream's 30 iterations per level it stopped at full resolution short of
+    its tolerance (exit 1) on both."""
+    import argparse
+    import json
+
+    import numpy as np
+
+    from ddvs_service import register_cli
+    from evaluation.pairs import pair_file
+
+    parser = argparse.ArgumentParser()
+    register_cli.add_arguments(parser)
+    files = [str(pair_file(seq, name)) for name in ("img1.png", f"img{k}.png")]
+    args = parser.parse_args(files + ([] if roi is None else ["--roi", *map(str, roi)]))
+    assert register_cli.run(args) == 0, capsys.readouterr().out
+    out = json.loads(capsys.readouterr().out.splitlines()[-1])  # the last line (Taichi may print a banner first)
+    assert out["converged"], out["reason"]
+    h, w = load(seq, 1).shape
+    assert corner_error(ground_truth(seq, k), np.array(out["H"]), roi or (0, 0, w, h)) <= 1.5
