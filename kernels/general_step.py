@@ -468,4 +468,4 @@ def general_step(
                 row_basis(cki, params, (v - bcy) / bs, NR, NX, degree)
                 row = ti.Vector(racc)  # the fold indexes it at run time; the pixel loop's sums stay in registers
                 fold_row(work, abase, row, cki, a_rows, firsts, first_coefs, NR, NX, grid_rows, grid_cols)
-    finish_sums(work, NACC, nb)
+    finish_sums(work, NACC, params, PARAMS_BANDS)

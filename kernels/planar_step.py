@@ -22,6 +22,12 @@ accumulation loops store only into thread-local arrays and have no data-dependen
 (docs/performance.md).
 Parameters come in one float32 array (`PARAMS_*` offsets) and every result goes to one float32 work array
 (`work_size`).
+
+Robot axis: `planar_step` takes stacks — images `[k, row, col]`, parameters and work `[k, i]` — and evaluates every
+robot `k` whose band count `params[k, PARAMS_BANDS]` is positive in the same launch (its bands are threads beside
+the other robots'; a robot with 0 bands is skipped and its work row left as it was). One robot's evaluation is a
+stack of one: the same source, the same arithmetic in the same order, so a robot's sums do not depend on which
+other robots share its launch (`registration.lockstep` batches the fleet's robots with it).
 """
 
 
@@ -30,7 +36,18 @@ import warnings
 
 import taichi as ti
 
-from kernels.sampling import grid_coordinate, homography_apply, load_vector, projected_sample, tent
+from kernels.sampling import (
+    entry,
+    grid_coordinate,
+    homography_apply,
+    image_size,
+    load_vector,
+    projected_sample,
+    put_entry,
+    stack_size,
+    tent,
+    texel,
+)
 
 # The accumulators are unrolled on purpose (they live in registers); silence Taichi's compile-time-length warning.
 warnings.filterwarnings("ignore", message="You are unrolling more than", category=SyntaxWarning)
@@ -252,8 +269,7 @@ def reference_taps(ref: ti.template(), v: ti.i32, u: ti.i32):
 @ti.func
 def tap_bounds(ref: ti.template(), v: ti.i32, u: ti.i32):
     """Columns `ul`, `ur` and rows `vu`, `vd` of the neighbours of reference pixel `(u, v)`, clamped to the image."""
-    hr = ref.shape[0]
-    wr = ref.shape[1]
+    hr, wr = image_size(ref)
     return ti.max(u - 1, 0), ti.min(u + 1, wr - 1), ti.max(v - 1, 0), ti.min(v + 1, hr - 1)
 
 
@@ -282,8 +298,9 @@ def hist_value(k: ti.i32, frac: ti.f32) -> ti.f32:
 
 
 @ti.func
-def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: ti.i32):
-    """Write band `b`'s partial sums `acc` and its |r| histogram `hist` to their places in `work` (`work_size`).
+def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: ti.i32, robot: ti.i32):
+    """Write band `b`'s partial sums `acc` and its |r| histogram `hist` to their places in `work` (`work_size`; row
+    `robot` of a stack, `sampling.put_entry`).
 
     The loops run to `max(b, n)`, which is `n` (`b < MAX_BANDS ≤ n`) but not a constant to LLVM: with constant trip
     counts it unrolled them 23- and 64-fold into long blocks of loads and stores (each store reloads the ndarray's
@@ -292,15 +309,17 @@ def store_band(work: ti.template(), acc: ti.template(), hist: ti.template(), b: 
     nacc = ti.static(acc.n)
     ti.static_assert(min(nacc, HIST_BINS) >= MAX_BANDS)
     for k in range(ti.max(b, nacc)):
-        work[(1 + b) * nacc + k] = acc[k]
+        put_entry(work, robot, (1 + b) * nacc + k, acc[k])
     for k in range(ti.max(b, HIST_BINS)):
-        work[nacc * (1 + MAX_BANDS) + b * HIST_BINS + k] = hist[k]
+        put_entry(work, robot, nacc * (1 + MAX_BANDS) + b * HIST_BINS + k, hist[k])
 
 
 @ti.func
-def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
-    """Serial tail of a step kernel: add the `nb` band partials (float64) into `work[:nacc]`, then write the median
-    of |r| read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`.
+def finish_sums(work: ti.template(), nacc: ti.template(), params: ti.template(), bands_at: ti.template()):
+    """Tail of a step kernel, one thread per robot (`work` and `params` of one robot, or stacks: `sampling.entry`):
+    add the robot's `nb = params[bands_at]` band partials (float64) into `work[:nacc]`, then write the median of |r|
+    read from the band histograms (over the pixels they counted) into the last statistic, `work[nacc − 1]`; a robot
+    with `nb = 0` (not evaluated in this launch) is left as it was.
 
     The histograms are added band by band over each band's contiguous bins into band 0's histogram in `work`
     (integers: any order gives the same counts): LLVM compiles that to a fraction of the machine code of a loop over
@@ -308,33 +327,35 @@ def finish_sums(work: ti.template(), nacc: ti.template(), nb: ti.i32):
     generation on every start. The sums keep their loop over the bands per entry: a local float64 array of all
     `nacc` sums instead made Taichi's IR passes, and so a cold compile, grow with the grid (docs/results/speed.md,
     start-up). No local array here at all: Taichi 1.7's SPIR-V code generation (Vulkan) fails on a kernel whose
-    parallel loop and serial tail both initialise a local array ("Value … does not yet exist": the element offsets
+    parallel loop and tail both initialise a local array ("Value … does not yet exist": the element offsets
     of the second array refer to constants of the first task; docs/gpu.md)."""
     hist0 = ti.static(nacc * (1 + MAX_BANDS))
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        for k in range(nacc):
-            total = ti.cast(0.0, ti.f64)
-            for b in range(nb):
-                total += ti.cast(work[(1 + b) * nacc + k], ti.f64)
-            work[k] = ti.cast(total, ti.f32)
-        for b in range(1, nb):
+    for robot in range(stack_size(params)):
+        nb = ti.cast(entry(params, robot, bands_at), ti.i32)
+        if nb > 0:
+            for k in range(nacc):
+                total = ti.cast(0.0, ti.f64)
+                for b in range(nb):
+                    total += ti.cast(entry(work, robot, (1 + b) * nacc + k), ti.f64)
+                put_entry(work, robot, k, ti.cast(total, ti.f32))
+            for b in range(1, nb):
+                for k in range(HIST_BINS):
+                    put_entry(work, robot, hist0 + k,
+                              entry(work, robot, hist0 + k) + entry(work, robot, hist0 + b * HIST_BINS + k))
+            counted = 0.0
             for k in range(HIST_BINS):
-                work[hist0 + k] += work[hist0 + b * HIST_BINS + k]
-        counted = 0.0
-        for k in range(HIST_BINS):
-            counted += work[hist0 + k]
-        half = 0.5 * counted
-        cum = 0.0
-        median = 0.0
-        found = 0
-        for k in range(HIST_BINS):
-            count = work[hist0 + k]
-            if found == 0 and count > 0.0 and cum + count >= half:
-                median = hist_value(k, (half - cum) / count)
-                found = 1
-            cum += count
-        work[nacc - 1] = median
+                counted += entry(work, robot, hist0 + k)
+            half = 0.5 * counted
+            cum = 0.0
+            median = 0.0
+            found = 0
+            for k in range(HIST_BINS):
+                count = entry(work, robot, hist0 + k)
+                if found == 0 and count > 0.0 and cum + count >= half:
+                    median = hist_value(k, (half - cum) / count)
+                    found = 1
+                cum += count
+            put_entry(work, robot, nacc - 1, median)
 
 
 TILE = 128  # columns per tile of the thread-local rolling buffer of warped rows
@@ -343,22 +364,22 @@ TILE_STRIDE = TILE + 2
 
 @ti.func
 def warp_row(cur: ti.template(), ref: ti.template(), G: ti.template(), buf: ti.template(), rbuf: ti.template(),
-             slot: ti.i32, v: ti.i32, ut0: ti.i32, n: ti.i32):
-    """Warp `n` pixels of reference row `v` from column `ut0 − 1` into slot `slot` of the rolling buffer `buf`:
+             slot: ti.i32, v: ti.i32, ut0: ti.i32, n: ti.i32, robot: ti.i32):
+    """Warp `n` pixels of reference row `v` (robot `robot`'s images of the stacks) from column `ut0 − 1` into slot
+    `slot` of the rolling buffer `buf`:
     `I(w(G, p*))`, or `OUTSIDE` where the warp leaves `cur` or the sample is clipped (`SATURATED`); copy the same
     pixels of the reference, row and columns clamped to the image, into the same slot of `rbuf`. Stores go to
     thread-local arrays only, so LLVM keeps the ndarray pointers in registers and vectorises the loop (gathers for
     the bilinear taps). The clamped reference reads happen here once per pixel rather than in the pixel loop,
     which then reads all its taps from consecutive elements: the clamped left and right taps made LLVM scalarise
     them there, lane by lane, a fifth of that loop's code to generate at every start (docs/performance.md)."""
-    hr = ref.shape[0]
-    wr = ref.shape[1]
+    hr, wr = image_size(ref)
     vr = ti.min(ti.max(v, 0), hr - 1)
     for j in range(n):
         x, y, z = homography_apply(G, ti.cast(ut0 - 1 + j, ti.f32), ti.cast(v, ti.f32))
-        val, ok = projected_sample(cur, x, y, z)
+        val, ok = projected_sample(cur, x, y, z, robot)
         buf[slot * TILE_STRIDE + j] = ti.select((ok == 1) & (val < SATURATED), val, OUTSIDE)
-        rbuf[slot * TILE_STRIDE + j] = ref[vr, ti.min(ti.max(ut0 - 1 + j, 0), wr - 1)]
+        rbuf[slot * TILE_STRIDE + j] = texel(ref, robot, vr, ti.min(ti.max(ut0 - 1 + j, 0), wr - 1))
 
 
 @ti.func
@@ -390,14 +411,15 @@ def pixel_terms(ref: ti.template(), rbuf: ti.template(), buf: ti.template(), spa
 
 @ti.kernel
 def planar_step(
-    ref: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    cur: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    params: ti.types.ndarray(dtype=ti.f32, ndim=1),
-    work: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    ref: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    cur: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    params: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    work: ti.types.ndarray(dtype=ti.f32, ndim=2),
     grid_rows: ti.template(),
     grid_cols: ti.template(),
 ):
-    """Evaluate residuals, robust weights and normal equations at the parameters in `params` (module docstring).
+    """Evaluate residuals, robust weights and normal equations at the parameters in `params[k]` for every robot `k`
+    of the stacks with bands to run (module docstring: the robot axis).
 
     Each band walks its rows in column tiles of `TILE` pixels, warping the current image one row ahead into a
     thread-local rolling buffer of three rows (the ROI grown by one pixel on each side, `OUTSIDE` where the warp
@@ -408,105 +430,112 @@ def planar_step(
     P = ti.static(N_GEOMETRIC + M)
     NT = ti.static(P * (P + 1) // 2)
     NACC = ti.static(NT + P + N_STATS)
-    nb = ti.cast(params[PARAMS_BANDS], ti.i32)
-    u0 = ti.cast(params[PARAMS_ROI + 0], ti.i32)
-    v0 = ti.cast(params[PARAMS_ROI + 1], ti.i32)
-    u1 = ti.cast(params[PARAMS_ROI + 2], ti.i32)
-    v1 = ti.cast(params[PARAMS_ROI + 3], ti.i32)
-    cx = params[PARAMS_NORM + 0]
-    cy = params[PARAMS_NORM + 1]
-    s = params[PARAMS_NORM + 2]
-    beta = params[PARAMS_BETA]
-    sigma = params[PARAMS_SIGMA]
-    kind = ti.cast(params[PARAMS_ROBUST], ti.i32)
-    G = load_vector(params, PARAMS_G, 9)
-    span = load_vector(params, PARAMS_SPAN, 4)
-    gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
+    # The most bands of one robot: each robot gets that many 512-iteration blocks, its own bands in the first ones.
+    most = 0
+    ti.loop_config(serialize=True)
+    for robot in range(params.shape[0]):
+        most = ti.max(most, ti.cast(params[robot, PARAMS_BANDS], ti.i32))
     # A CPU parallel loop hands out blocks of ≥ 512 iterations: one band per block spreads bands over threads.
-    for it in range(nb * 512):
+    for it in range(params.shape[0] * most * 512):
         if it % 512 == 0:
-            b = it // 512
-            # Local arrays (their stores alias no ndarray), zeroed as `ti.Vector([0.0] * n)`: `ti.Vector.zero` is a
-            # Taichi function whose list comprehension the front end walks element by element at every start.
-            hist = ti.Vector([0.0] * HIST_BINS, ti.f32)
-            rows = v1 - v0 + 1
-            first = v0 + b * rows // nb
-            last = v0 + (b + 1) * rows // nb  # exclusive
-            acc = ti.Vector([0.0] * NACC, ti.f32)
-            buf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # rows v − 1, v, v + 1 of the warped current image
-            rbuf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # the same rows of the reference
-            for tile in range((u1 - u0 + TILE) // TILE):
-                ut0 = u0 + tile * TILE
-                ut1 = ti.min(ut0 + TILE - 1, u1)
-                n = ut1 - ut0 + 3
-                # Warp row t into its slot; once rows v − 1, v, v + 1 are there, process row v = t − 1.
-                for t in range(first - 1, last + 1):
-                    warp_row(cur, ref, G, buf, rbuf, (t - first + 1) % 3, t, ut0, n)
-                    if t > first:
-                        v = t - 1
-                        su = ((v - first) % 3) * TILE_STRIDE - ut0 + 1
-                        sc = ((v - first + 1) % 3) * TILE_STRIDE - ut0 + 1
-                        sd = ((v - first + 2) % 3) * TILE_STRIDE - ut0 + 1
-                        a, h = row_gains(span, gains, ti.cast(v, ti.f32), grid_rows, grid_cols)
-                        moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
-                        cross_c = ti.Matrix.zero(ti.f32, C, 5)  # Σ w b_j Iw b_q (photometric_row)
-                        photo_c = ti.Vector.zero(ti.f32, C * (C + 1) // 2)  # Σ w b_j b_l Iw², upper triangle
-                        photo_cb = ti.Vector.zero(ti.f32, C)  # Σ w b_j Iw
-                        cross_b = ti.Vector.zero(ti.f32, 5)  # Σ w b_q
-                        w_sum = 0.0
-                        gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
-                        ge_c = ti.Vector.zero(ti.f32, C)  # Σ w r b_j Iw
-                        r_sum = 0.0
-                        stats = ti.Vector.zero(ti.f32, 3)
-                        # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
-                        for u in range(ut0, ut1 + 1):
-                            ok, r, gx, gy, c0, bt = pixel_terms(ref, rbuf, buf, span, h, v, u, su, sc, sd, beta, C)
-                            valid = ti.select(ok, 1.0, 0.0)
-                            w = valid * robust_weight(r, sigma, kind)
-                            du = u - cx
-                            du2 = du * du
-                            wxx = w * gx * gx
-                            wxy = w * gx * gy
-                            wyy = w * gy * gy
-                            du3 = du2 * du
-                            moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
-                                                  wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
-                            basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
-                            E = bt * c0  # the gain columns' photometric Jacobian entries, over the row's a_i
-                            for j in ti.static(range(C)):
-                                we = w * E[j]
-                                for q in ti.static(range(5)):
-                                    cross_c[j, q] += we * basis[q]
-                                for l in ti.static(range(j, C)):
-                                    photo_c[ti.static(_triangle_index(j, l, C))] += we * E[l]
-                                photo_cb[j] += we
-                            cross_b += w * basis
-                            w_sum += w
-                            w_r = w * r
-                            gb += w_r * basis
-                            ge_c += w_r * E
-                            r_sum += w_r
-                            inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
-                            stats += ti.Vector([valid, inlier, valid * r * r])
-                        accumulate_row(acc, moments, cross_c, photo_c, photo_cb, cross_b, w_sum, gb, ge_c, r_sum,
-                                       stats, a, v - cy, s, grid_rows, grid_cols)
-                        # The |r| histogram stores (into a thread-local array), so it gets its own scalar loop,
-                        # over every other pixel of every other row, from the residual alone (valid where the
-                        # pixel's own reference and warped values are): it only has to give the median's scale.
-                        # It leaves by a `break` at the tile's end: LLVM does not unroll a loop with two exits (with
-                        # its run-time trip count alone it made eight copies of the body to generate at each start).
-                        if v % 2 == 0:
-                            for k in range((TILE + 1) // 2):
-                                u = ut0 + 2 * k
-                                if u > ut1:
-                                    break
-                                ir = rbuf[sc + u]
-                                c0 = buf[sc + u]
-                                gain, _b = column_tents(span, h, ti.cast(u, ti.f32), C)
-                                if ti.min(ir, c0) > MASK_LIMIT:
-                                    hist[hist_bin(ti.abs(gain * c0 + beta - ir))] += 1.0
-            store_band(work, acc, hist, b)
-    finish_sums(work, NACC, nb)
+            robot = it // (most * 512)
+            b = it // 512 % most
+            nb = ti.cast(params[robot, PARAMS_BANDS], ti.i32)
+            if b < nb:
+                u0 = ti.cast(params[robot, PARAMS_ROI + 0], ti.i32)
+                v0 = ti.cast(params[robot, PARAMS_ROI + 1], ti.i32)
+                u1 = ti.cast(params[robot, PARAMS_ROI + 2], ti.i32)
+                v1 = ti.cast(params[robot, PARAMS_ROI + 3], ti.i32)
+                cx = params[robot, PARAMS_NORM + 0]
+                cy = params[robot, PARAMS_NORM + 1]
+                s = params[robot, PARAMS_NORM + 2]
+                beta = params[robot, PARAMS_BETA]
+                sigma = params[robot, PARAMS_SIGMA]
+                kind = ti.cast(params[robot, PARAMS_ROBUST], ti.i32)
+                G = load_vector(params, PARAMS_G, 9, robot)
+                span = load_vector(params, PARAMS_SPAN, 4, robot)
+                gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols, robot)
+                # Local arrays (their stores alias no ndarray), zeroed as `ti.Vector([0.0] * n)`: `ti.Vector.zero` is
+                # a Taichi function whose list comprehension the front end walks element by element at every start.
+                hist = ti.Vector([0.0] * HIST_BINS, ti.f32)
+                rows = v1 - v0 + 1
+                first = v0 + b * rows // nb
+                last = v0 + (b + 1) * rows // nb  # exclusive
+                acc = ti.Vector([0.0] * NACC, ti.f32)
+                buf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # rows v − 1, v, v + 1 of the warped current image
+                rbuf = ti.Vector([0.0] * (3 * TILE_STRIDE), ti.f32)  # the same rows of the reference
+                for tile in range((u1 - u0 + TILE) // TILE):
+                    ut0 = u0 + tile * TILE
+                    ut1 = ti.min(ut0 + TILE - 1, u1)
+                    n = ut1 - ut0 + 3
+                    # Warp row t into its slot; once rows v − 1, v, v + 1 are there, process row v = t − 1.
+                    for t in range(first - 1, last + 1):
+                        warp_row(cur, ref, G, buf, rbuf, (t - first + 1) % 3, t, ut0, n, robot)
+                        if t > first:
+                            v = t - 1
+                            su = ((v - first) % 3) * TILE_STRIDE - ut0 + 1
+                            sc = ((v - first + 1) % 3) * TILE_STRIDE - ut0 + 1
+                            sd = ((v - first + 2) % 3) * TILE_STRIDE - ut0 + 1
+                            a, h = row_gains(span, gains, ti.cast(v, ti.f32), grid_rows, grid_cols)
+                            moments = ti.Vector.zero(ti.f32, N_MOMENTS)  # see MOMENT_OFFSET
+                            cross_c = ti.Matrix.zero(ti.f32, C, 5)  # Σ w b_j Iw b_q (photometric_row)
+                            photo_c = ti.Vector.zero(ti.f32, C * (C + 1) // 2)  # Σ w b_j b_l Iw², upper triangle
+                            photo_cb = ti.Vector.zero(ti.f32, C)  # Σ w b_j Iw
+                            cross_b = ti.Vector.zero(ti.f32, 5)  # Σ w b_q
+                            w_sum = 0.0
+                            gb = ti.Vector.zero(ti.f32, 5)  # Σ w r b
+                            ge_c = ti.Vector.zero(ti.f32, C)  # Σ w r b_j Iw
+                            r_sum = 0.0
+                            stats = ti.Vector.zero(ti.f32, 3)
+                            # Loads and register sums only (no store, no branch): LLVM vectorises this loop.
+                            for u in range(ut0, ut1 + 1):
+                                ok, r, gx, gy, c0, bt = pixel_terms(ref, rbuf, buf, span, h, v, u, su, sc, sd, beta, C)
+                                valid = ti.select(ok, 1.0, 0.0)
+                                w = valid * robust_weight(r, sigma, kind)
+                                du = u - cx
+                                du2 = du * du
+                                wxx = w * gx * gx
+                                wxy = w * gx * gy
+                                wyy = w * gy * gy
+                                du3 = du2 * du
+                                moments += ti.Vector([wxx, wxx * du, wxx * du2, wxx * du3, wxx * du2 * du2,
+                                                      wxy, wxy * du, wxy * du2, wxy * du3, wyy, wyy * du, wyy * du2])
+                                basis = ti.Vector([gx, gy, gx * du, gy * du, gx * du2])
+                                E = bt * c0  # the gain columns' photometric Jacobian entries, over the row's a_i
+                                for j in ti.static(range(C)):
+                                    we = w * E[j]
+                                    for q in ti.static(range(5)):
+                                        cross_c[j, q] += we * basis[q]
+                                    for l in ti.static(range(j, C)):
+                                        photo_c[ti.static(_triangle_index(j, l, C))] += we * E[l]
+                                    photo_cb[j] += we
+                                cross_b += w * basis
+                                w_sum += w
+                                w_r = w * r
+                                gb += w_r * basis
+                                ge_c += w_r * E
+                                r_sum += w_r
+                                inlier = ti.select(ti.abs(r) <= INLIER_C * sigma, valid, 0.0)
+                                stats += ti.Vector([valid, inlier, valid * r * r])
+                            accumulate_row(acc, moments, cross_c, photo_c, photo_cb, cross_b, w_sum, gb, ge_c, r_sum,
+                                           stats, a, v - cy, s, grid_rows, grid_cols)
+                            # The |r| histogram stores (into a thread-local array), so it gets its own scalar loop,
+                            # over every other pixel of every other row, from the residual alone (valid where the
+                            # pixel's own reference and warped values are): it only has to give the median's scale.
+                            # It leaves by a `break` at the tile's end: LLVM does not unroll a loop with two exits (with
+                            # its run-time trip count alone it made eight copies of the body to generate at each start).
+                            if v % 2 == 0:
+                                for k in range((TILE + 1) // 2):
+                                    u = ut0 + 2 * k
+                                    if u > ut1:
+                                        break
+                                    ir = rbuf[sc + u]
+                                    c0 = buf[sc + u]
+                                    gain, _b = column_tents(span, h, ti.cast(u, ti.f32), C)
+                                    if ti.min(ir, c0) > MASK_LIMIT:
+                                        hist[hist_bin(ti.abs(gain * c0 + beta - ir))] += 1.0
+                store_band(work, acc, hist, b, robot)
+    finish_sums(work, NACC, params, PARAMS_BANDS)
 
 
 @ti.kernel

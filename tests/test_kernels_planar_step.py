@@ -54,7 +54,7 @@ def run_kernel(ref, cur, params, grid):
     n = n_params(*grid)
     work = np.zeros(work_size(n), dtype=np.float32)
     with compile_settings():
-        planar_step(ref, cur, params, work, grid[0], grid[1])
+        planar_step(ref[None], cur[None], params[None], work[None], grid[0], grid[1])  # a stack of one
     acc = work[: n_acc(n)].astype(np.float64)
     nt = n * (n + 1) // 2
     H = np.zeros((n, n))

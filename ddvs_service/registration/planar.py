@@ -264,8 +264,10 @@ class PlanarRegistration:
 
         if index not in self._steps:
             with compile_settings():  # a new specialisation compiles here (kernels.backend.compile_settings)
-                self._steps[index] = Prepared(planar_step, self.reference[index], self.current.buffers[index],
-                                              self._params, self._work, self.grid[0], self.grid[1])
+                # a stack of one robot: views, no copies (`kernels.planar_step`, the robot axis)
+                self._steps[index] = Prepared(planar_step, self.reference[index][None],
+                                              self.current.buffers[index][None], self._params[None],
+                                              self._work[None], self.grid[0], self.grid[1])
         return self._steps[index]
 
     def _fill_level(self, level: Level) -> None:
