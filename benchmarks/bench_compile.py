@@ -83,7 +83,7 @@ def planar_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[],
 
     def launch() -> None:
         with compile_settings():
-            ps.planar_step(ref, cur, params, work, rows, cols)
+            ps.planar_step(ref[None], cur[None], params[None], work[None], rows, cols)  # a stack of one robot
     return {"planar_step": launch}
 
 
