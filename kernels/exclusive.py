@@ -12,14 +12,16 @@ lock is held over them too): when a `hold()` is waiting, the background thread h
 it back afterwards, so a frame waits at most for the work between two checkpoints (one launch or one step, a few
 milliseconds), never for the whole job. Both are re-entrant on the thread that holds the lock (a job run on the loop
 thread itself passes its checkpoints straight through). `longest_wait_s` records the longest a `hold()` waited
-for the lock — the figure to keep well under a frame period.
+for the lock — the figure to keep well under a frame period. A holder may `lend` its hold to threads that run one at
+a time while it waits for them (a lock-step group: `ddvs_service.registration.lockstep`): they enter as if they were
+the holder.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
 
@@ -32,6 +34,7 @@ class Gate:
         self._depth = 0
         self._background = False
         self._waiting = 0  # foreground threads waiting for the lock
+        self._guests: frozenset[int] = frozenset()  # threads the owner lent its hold to (`lend`)
         self.longest_wait_s = 0.0
 
     @contextmanager
@@ -51,6 +54,22 @@ class Gate:
             yield
         finally:
             self._release()
+
+    @contextmanager
+    def lend(self, threads: Iterable[int]) -> Iterator[None]:
+        """Let `threads` (idents) enter the lock the calling thread holds as if they were it, re-entrantly, while
+        the context lasts. Only for threads that run one at a time while the holder waits for them: they share its
+        hold, not a lock among themselves."""
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner != me:
+                raise RuntimeError("only the thread that holds the Taichi gate can lend it")
+            self._guests = frozenset(threads)
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._guests = frozenset()
 
     def close(self) -> None:
         """Take the lock in the foreground for good, on this thread: for the end of a process, after which no other
@@ -75,7 +94,7 @@ class Gate:
     def _acquire(self, background: bool) -> None:
         me = threading.get_ident()
         with self._cond:
-            if self._owner == me:
+            if self._owner == me or (self._owner is not None and me in self._guests):
                 self._depth += 1
                 return
             if background:
@@ -94,7 +113,8 @@ class Gate:
 
     def _release(self) -> None:
         with self._cond:
-            if self._owner != threading.get_ident():
+            me = threading.get_ident()
+            if self._owner != me and me not in self._guests:
                 raise RuntimeError("the Taichi gate is released by a thread that does not hold it")
             self._depth -= 1
             if self._depth == 0:

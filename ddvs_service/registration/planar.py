@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import SL3_GENERATORS, sl3_exp, sl3_normalize
+from ddvs_service.registration import lockstep
 from ddvs_service.registration.coarse_search import coarse_alignment, usable_pixels
 from ddvs_service.registration.config import ROBUST_CODES, RegistrationConfig
 from ddvs_service.registration.images import F32, checked_image
@@ -270,6 +271,12 @@ class PlanarRegistration:
                                               self._work[None], self.grid[0], self.grid[1])
         return self._steps[index]
 
+    def step_inputs(self, index: int) -> lockstep.StepInputs:
+        """What level `index`'s step reads and writes, for a lock-step launch of several robots' steps
+        (`registration.lockstep`)."""
+        return lockstep.StepInputs(self.reference[index], self.current, index, self._params, self._work, self._nacc,
+                                   self.grid)
+
     def _fill_level(self, level: Level) -> None:
         """The parameters fixed at one level: normalisation, ROI bounds, gain-grid span, band count (written only
         when another level's are there: a tracked frame solves the same level frame after frame)."""
@@ -350,7 +357,11 @@ class _PlanarLevel:
 
     def normal_equations(self, iteration: int) -> NormalEquations:
         self.engine._fill_state(self.G_l, self.state)
-        self._launch()
+        batch = lockstep.current()
+        if batch is None:
+            self._launch()
+        else:  # with the other robots' steps of a lock-step run, in one launch
+            batch.evaluate(self.engine.step_inputs(self.level.index))
         engine = self.engine
         equations = NormalEquations.unpack(engine._work[: engine._nacc], len(self.free), engine._sym)
         if self.level.index == 0 and self._subset is None:

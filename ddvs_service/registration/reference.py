@@ -121,6 +121,7 @@ class CurrentPyramid:
     def __init__(self, reference: PreparedReference) -> None:
         self.reference = reference
         self.buffers = [np.empty_like(level) for level in reference.pyramid]
+        self.loads = 0  # images loaded so far: a copy of the buffers knows whether it is the newest frame's
         self._downsamples: dict[int, Prepared] = {}
         self._linearise: Prepared | None = None
 
@@ -134,6 +135,7 @@ class CurrentPyramid:
 
         gamma = self.reference.config.gamma
         np.copyto(self.buffers[0], cur)
+        self.loads += 1
         if gamma != 1.0:
             if self._linearise is None:
                 self._linearise = Prepared(linearise, self.buffers[0], gamma)
