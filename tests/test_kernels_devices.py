@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DEVICES = ("vulkan", "cuda")
 KERNEL_TESTS = ("test_kernels_planar_step.py", "test_kernels_launch.py", "test_bspline.py", "test_image_formation.py",
                 "test_spline_window.py", "test_freeflyer.py", "test_coarse_search.py", "test_global_init.py",
-                "test_residual.py", "test_general_registration.py")
+                "test_residual.py", "test_general_registration.py", "test_lockstep.py")
 SHIPPED_PAIRS = (("bikes", 4), ("bikes", 6), ("boat", 2), ("leuven", 6))
 
 pytestmark = [pytest.mark.device, pytest.mark.slow]  # minutes: make test runs them, make test-fast does not
