@@ -53,6 +53,7 @@ RESULTS_PAGES = {
     "registration-bench": RESULTS / "speed.md",
     "global-init": RESULTS / "robustness.md",
     "record-cost": RESULTS / "speed.md",
+    "batched-fleet": RESULTS / "fleet.md",
 }
 ITERATIONS = 20  # K iterations per timed call (ours and ECC)
 
