@@ -204,11 +204,12 @@ def test_ctl_process_actions_map_to_process_commands(tmp_path: Path) -> None:
 
 # --- one process, several robots --------------------------------------------------------------------------------
 @pytest.mark.slow
-def test_robots_of_one_process_servo_independently_and_fairly(tmp_path: Path) -> None:
+@pytest.mark.parametrize("batched", ["off", "on"])
+def test_robots_of_one_process_servo_independently_and_fairly(tmp_path: Path, batched: str) -> None:
     """Three robots in one process: each converges on its own; a flood of frames from all three (robot c's mixed
     with garbage and bad commands) is served fairly — no frame waited behind two frames of one other robot — and
-    only c counts rejections."""
-    with fleet(tmp_path, ["a", "b", "c"]) as (_, ops, _port):
+    only c counts rejections; one frame a turn, or every waiting robot's frame of a turn in lock-step."""
+    with fleet(tmp_path, ["a", "b", "c"], "--batched", batched) as (_, ops, _port):
         lister = ops["a"]
         listed = process_command(lister, "a", op="list_robots")
         assert listed.ok and listed.data is not None and listed.data["process"] == "a"

@@ -6,6 +6,9 @@ compiles on the thread that runs it). Each turn the loop runs: the oldest pendin
 command and newest camera info, one frame — the newest of the robot that has waited longest for a turn
 (`scheduler.Scheduler`: a robot's frame waits behind at most one frame of each other robot) — then every robot's
 watchdog. Between turns it sleeps until something arrives for the process or any robot, or a watchdog is due.
+Batched (`batched`; by default when Taichi runs on a device, not on the CPU, where it was not faster:
+docs/performance.md), a turn takes the newest frame of every robot that has one, in the same order, and serves them
+in lock-step (`registration.lockstep`: one planar step launch per level and iteration for all of them).
 A robot's bad frame or command is answered for that robot alone; the others go on.
 
 `add_robot` builds the robot (its persisted state resumed from `state_dir/robots/<robot>`, or deleted first with
@@ -17,6 +20,7 @@ and last state, then every Zenoh object undeclared and the session closed.
 
 from __future__ import annotations
 
+import functools
 import logging
 import shutil
 import threading
@@ -30,10 +34,11 @@ from ddvs_service.logs import fields
 from ddvs_service.protocol import Command, InvalidMessage, Keys, ProtocolError, Reply, dump, open_session, parse_command
 from ddvs_service.protocol.control import PROCESS_OPS
 from ddvs_service.protocol.security import check_robot_covered, warn_if_insecure
+from ddvs_service.registration.lockstep import Lockstep
 from ddvs_service.service.fleet_config import FleetChanges, FleetConfig
-from ddvs_service.service.inbox import Inbox, Wakeup
+from ddvs_service.service.inbox import Arrival, Inbox, Wakeup
 from ddvs_service.service.persistence import BackgroundWriter, StateStore
-from ddvs_service.service.robot import RobotServo
+from ddvs_service.service.robot import CheckedFrame, RobotServo
 from ddvs_service.service.scheduler import Scheduler
 
 log = logging.getLogger("ddvs.serve")
@@ -42,12 +47,16 @@ MAX_WAIT_S = 0.05  # longest sleep between turns: how soon a set `stop` is notic
 
 class ServeProcess:
     """Serves `fleet`'s robots (or the given `robots`, built on `wakeup`) until `run`'s `stop` is set.
-    `warmup`: compile each new registration configuration's kernels before its robot is served."""
+    `warmup`: compile each new registration configuration's kernels before its robot is served. `batched`: serve
+    every robot's waiting frame of a turn in lock-step (module docstring); None: when Taichi does not run on the
+    CPU."""
 
     def __init__(self, fleet: FleetConfig, robots: Iterable[RobotServo] | None = None, wakeup: Wakeup | None = None,
-                 warmup: bool = True) -> None:
+                 warmup: bool = True, batched: bool | None = None) -> None:
         self.fleet = fleet
         self.warmup = warmup
+        self.batched = batched
+        self._lockstep: Lockstep | None = None
         self.wakeup = wakeup or Wakeup()
         self.inbox: Inbox[None] = Inbox(wakeup=self.wakeup)  # the process's commands (no frames)
         self.writer = BackgroundWriter(StateStore(fleet.base.state_dir))
@@ -125,6 +134,8 @@ class ServeProcess:
             while not stop.is_set():
                 self._turn()
         finally:
+            if self._lockstep is not None:
+                self._lockstep.close()
             for robot in self.robots.values():
                 robot.close("service shutting down")
             commands.undeclare()
@@ -137,15 +148,41 @@ class ServeProcess:
         self._handle_query(self.inbox.take_query())
         for robot in self.robots.values():
             robot.handle_inputs()
-        name = self.scheduler.pick(lambda n: self.robots[n].inbox.waiting_since)
-        if name is not None:
+        taken = self._take_frames(self._batching())
+        if len(taken) == 1:
+            robot, arrival = taken[0]
+            robot.handle_frame(arrival)
+        elif taken:
+            if self._lockstep is None:
+                self._lockstep = Lockstep()
+            self._lockstep.run([functools.partial(robot.handle_frame, arrival) for robot, arrival in taken])
+        for robot in self.robots.values():
+            robot.watchdog()
+
+    def _batching(self) -> bool:
+        """Whether this turn takes every waiting robot's frame (`batched`, by default off the CPU)."""
+        if self.batched is not None:
+            return self.batched
+        from kernels.backend import current
+
+        return current() not in ("", "cpu")
+
+    def _take_frames(self, every: bool) -> list[tuple[RobotServo, Arrival[CheckedFrame]]]:
+        """The frame of the robot waiting longest (`scheduler.Scheduler`), or with `every` the frames of every robot
+        with one, in that order (one per robot: a frame arriving meanwhile waits for the next turn)."""
+        taken: list[tuple[RobotServo, Arrival[CheckedFrame]]] = []
+        names: set[str] = set()
+        while (name := self.scheduler.pick(
+                lambda n: None if n in names else self.robots[n].inbox.waiting_since)) is not None:
+            names.add(name)
             robot = self.robots[name]
             arrival = robot.inbox.take_frame()
             if arrival is not None:
                 self.scheduler.take(name, arrival.turn, self.wakeup.turns)
-                robot.handle_frame(arrival)
-        for robot in self.robots.values():
-            robot.watchdog()
+                taken.append((robot, arrival))
+            if not every:
+                break
+        return taken
 
     # --- process commands ---------------------------------------------------------------------------------------
     def _handle_query(self, query: zenoh.Query | None) -> None:

@@ -45,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "it, unless --cpu-fallback (docs/gpu.md)")
     parser.add_argument("--cpu-fallback", action="store_true",
                         help="serve on the CPU when the --arch backend cannot start (the log and the status say so)")
+    parser.add_argument("--batched", choices=["auto", "on", "off"], default="auto",
+                        help="serve the waiting frames of all robots of the process in lock-step, one planar step "
+                             "launch per level and iteration for all (auto: when the backend is not the CPU, where it "
+                             "was not faster; docs/performance.md)")
     parser.add_argument("--realtime-priority", type=int, metavar="1-99",
                         help="run under SCHED_FIFO at this priority (needs root or CAP_SYS_NICE)")
     add_zenoh_arguments(parser)
@@ -133,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    served = ServeProcess(fleet, warmup=args.warmup)
+    served = ServeProcess(fleet, warmup=args.warmup, batched={"auto": None, "on": True, "off": False}[args.batched])
     if served.uncovered() or not check_process_covered(fleet.command_key, base.zenoh.zenoh_config):
         return 2  # logged: the router configuration beside ours would silently drop those robots or process commands
 
