@@ -2,8 +2,10 @@
 (Taichi's offline cache at an empty directory) and warm (the same directory again), and the median launch afterwards.
 
 - `planar`: `kernels.planar_step` (the planar model's step).
-- `general`: the four `kernels.general_step` specialisations the general model's frame path launches (ρ* columns
-  or not × Keys or B-spline sampling), degree `--degree` of ρ*; the times are their sum.
+- `general`: the four `kernels.general_step` launches of the general model's frame path (ρ* columns or not × Keys
+  or B-spline sampling), degree `--degree` of ρ*; the times are their sum. The sampling is a run-time argument, so
+  the ρ* columns alone specialise: the first launch of each pair compiles, the second runs compiled code (a
+  `--general-module` whose sampling is a template argument compiles all four).
 Each launch runs under `kernels.backend.compile_settings` (Taichi's settings the registrations compile them with);
 a `--general-module FILE` under its own `compile_settings` if it has one, else with Taichi's defaults.
 
@@ -88,8 +90,8 @@ def planar_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[],
 
 
 def general_launches(rows: int, cols: int, degree: int) -> dict[str, Callable[[], None]]:
-    """The four `general_step` specialisations of the general frame path on the same pair, ρ* of `degree`
-    non-zero; the last one is the tracking launch (no ρ* columns, B-spline sampling)."""
+    """The four `general_step` launches of the general frame path on the same pair, ρ* of `degree` non-zero; the
+    last one is the tracking launch (no ρ* columns, B-spline sampling)."""
     cases = general_cases(_general_module(os.environ.get(MODULE_ENV)), rows, cols, degree)
     return {name: launch for name, (launch, _sums, _n) in cases.items()}
 

@@ -6,8 +6,9 @@ For every reference pixel `p* = (u, v)` of the region of interest (level pixels,
   normalisation of the reference pixel (`PARAMS_BNORM`) and `a` the monomial coefficients of the current `ρ*`;
 - residual `r = S(p*) · I(w) + β − I*(p*)`;
 - `I(w)` and its exact gradient `∇I(w)` from one bicubic interpolation (`cubic_sample`, 4×4 taps): Keys cubic
-  convolution of the image, or (`spline`: `GeneralConfig.interpolation` "bspline", full resolution) the
-  interpolating cubic B-spline from the image's prefiltered coefficients (`kernels.bspline`). Bilinear
+  convolution of the image, or (`spline` ≠ 0: `GeneralConfig.interpolation` "bspline", full resolution) the
+  interpolating cubic B-spline from the image's prefiltered coefficients (`kernels.bspline`); a run-time argument
+  choosing the taps' polynomial coefficients, so both share one compiled kernel (`KEYS`, `BSPLINE`). Bilinear
   interpolation's phase-dependent blur biased the optimum (gain 1.01–1.015 on unit-gain renders, warp 0.01–0.03 px
   off on the paper's trajectory); Keys brings the gain to 1.000–1.001 and lowers that warp error by 30–40 %; near
   the paper's equilibrium its own error still dominates the residual at the true warp on band-limited frames
@@ -130,40 +131,38 @@ def _powers(t: ti.f32, degree: ti.template()):
     return p
 
 
-@ti.func
-def _keys(t: ti.f32):
-    """Keys cubic convolution (a = −½) weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1), and their derivatives."""
-    t2 = t * t
-    t3 = t2 * t
-    w = ti.Vector([-0.5 * (t3 + t) + t2, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * (t3 - t2)])
-    d = ti.Vector([-1.5 * t2 + 2.0 * t - 0.5, 4.5 * t2 - 5.0 * t, -4.5 * t2 + 4.0 * t + 0.5, 1.5 * t2 - t])
-    return w, d
+# Cubic weights of taps −1, 0, 1, 2 at fraction t ∈ [0, 1) as polynomials `Σ_k c_k t^k` (rows: taps, columns: c_0…c_3).
+KEYS = ((0.0, -0.5, 1.0, -0.5), (1.0, 0.0, -2.5, 1.5), (0.0, 0.5, 2.0, -1.5), (0.0, 0.0, -0.5, 0.5))  # a = −½
+BSPLINE = ((1 / 6, -0.5, 0.5, -1 / 6), (2 / 3, 0.0, -1.0, 0.5), (1 / 6, 0.5, 0.5, -0.5), (0.0, 0.0, 0.0, 1 / 6))
 
 
 @ti.func
-def _bspline(t: ti.f32):
-    """Cubic B-spline weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1), and their derivatives."""
-    t2 = t * t
-    t3 = t2 * t
-    s = 1.0 - t
-    w = ti.Vector([s * s * s / 6.0, 0.5 * t3 - t2 + 2.0 / 3.0, -0.5 * t3 + 0.5 * t2 + 0.5 * t + 1.0 / 6.0, t3 / 6.0])
-    d = ti.Vector([-0.5 * s * s, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2])
-    return w, d
+def _tap(t: ti.f32, spline: ti.i32, j: ti.template()):
+    """Weight of tap `j` at fraction `t` and its derivative along `t`: `BSPLINE[j]` when `spline` ≠ 0, else
+    `KEYS[j]` (Horner)."""
+    c0 = ti.select(spline != 0, BSPLINE[j][0], KEYS[j][0])
+    c1 = ti.select(spline != 0, BSPLINE[j][1], KEYS[j][1])
+    c2 = ti.select(spline != 0, BSPLINE[j][2], KEYS[j][2])
+    c3 = ti.select(spline != 0, BSPLINE[j][3], KEYS[j][3])
+    return ((c3 * t + c2) * t + c1) * t + c0, (3.0 * c3 * t + 2.0 * c2) * t + c1
 
 
 @ti.func
-def _weights(t: ti.f32, spline: ti.template()):
-    """`_bspline(t)` when `spline`, else `_keys(t)`."""
-    w, d = _keys(t)
-    if ti.static(spline):
-        w, d = _bspline(t)
-    return w, d
+def _weights(t: ti.f32, spline: ti.i32):
+    """Weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1) and their derivatives: the cubic B-spline when
+    `spline` ≠ 0, else Keys cubic convolution (a = −½). A run-time choice of coefficients (loop-invariant selects,
+    no branch), so that one compiled kernel samples either way and the pixel loop stays vectorised."""
+    w0, d0 = _tap(t, spline, 0)
+    w1, d1 = _tap(t, spline, 1)
+    w2, d2 = _tap(t, spline, 2)
+    w3, d3 = _tap(t, spline, 3)
+    return ti.Vector([w0, w1, w2, w3]), ti.Vector([d0, d1, d2, d3])
 
 
 @ti.func
-def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32, spline: ti.template(), domain: ti.template()):
+def cubic_sample(img: ti.template(), x: ti.f32, y: ti.f32, spline: ti.i32, domain: ti.template()):
     """Bicubic sample at column `x`, row `y` and its exact gradient (grey levels per pixel): Keys cubic convolution of
-    the image `img`, or, when `spline`, the cubic B-spline whose coefficients `img` holds (`kernels.bspline`).
+    the image `img`, or, when `spline` ≠ 0, the cubic B-spline whose coefficients `img` holds (`kernels.bspline`).
 
     Returns `(value, d/dx, d/dy, ok)`; `ok = 0` (zeros) unless the 4×4 taps lie inside, i.e. `1 ≤ x, y` and
     `x ≤ W − 2`, `y ≤ H − 2` (the same domain as a bilinear sample with ±1 px central differences), and the point
@@ -228,7 +227,7 @@ def warp_point(G: ti.template(), e: ti.template(), u: ti.i32, v: ti.i32, rho: ti
 @ti.func
 def pixel_terms(ref: ti.template(), cur: ti.template(), G: ti.template(), e: ti.template(), rho_coeffs: ti.template(),
                 span: ti.template(), h: ti.template(), v: ti.i32, u: ti.i32, yp: ti.template(), bcx: ti.f32,
-                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_cols: ti.template(), spline: ti.template(),
+                bs: ti.f32, beta: ti.f32, degree: ti.template(), grid_cols: ti.template(), spline: ti.i32,
                 domain: ti.template()):
     """Everything one reference pixel `(u, v)` contributes, before the Jacobian: `(ok, r, I(w), ∂I/∂x, ∂I/∂y, x, y,
     1/Z, ρ, ∂ρ/∂u, ∂ρ/∂v, x-powers, ∂I*/∂u, ∂I*/∂v, S, b)` (`yp`: powers of the row's basis coordinate; `h`, `b`:
@@ -358,10 +357,12 @@ def general_step(
     with_rho: ti.template(),
     grid_rows: ti.template(),
     grid_cols: ti.template(),
-    spline: ti.template(),
+    spline: ti.i32,
 ):
     """Residuals, robust weights and normal equations of eq. (5) under the warp (2) (module docstring); `cur` holds
-    the current image's cubic B-spline coefficients when `spline`, else the image itself (Keys interpolation)."""
+    the current image's cubic B-spline coefficients when `spline` ≠ 0, else the image itself (Keys interpolation).
+    `spline` is a run-time argument: Keys and B-spline sampling share one compiled kernel per (degree, ρ* columns,
+    gain grid)."""
     NR = ti.static(n_rho if with_rho else 0)
     P = ti.static(N_FIXED + NR + grid_rows * grid_cols + 1)
     NT = ti.static(P * (P + 1) // 2)

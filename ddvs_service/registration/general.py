@@ -279,13 +279,13 @@ class GeneralRegistration:
             self._sym[n] = symmetric_index(n)
         key = (level.index, with_rho)
         window = self._spline if level.index == 0 else None
-        spline = window is not None
+        spline = int(window is not None)  # a run-time argument: one compiled kernel samples both ways
         if window is not None:
             probe = self._probe_warp(state.G, state.e, state.c)
             lo, hi = probe.min(axis=0), probe.max(axis=0)
             cur = window.covering(cur, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
         if key not in self._steps or self._steps[key][0] is not cur:
-            with compile_settings():  # a new specialisation compiles here (kernels.backend.compile_settings)
+            with compile_settings():  # a new specialisation (degree, `with_rho`, grid) compiles here
                 self._steps[key] = (cur, Prepared(general_step, self.reference[level.index], cur, self._params,
                                                   self._work[n], self.basis.degree, self.basis.size, with_rho,
                                                   *self.grid, spline))

@@ -4,7 +4,7 @@ Warm-up: Taichi compiles (or, with its offline cache warm, loads and links) each
 made the first frame after a start or an upload take tens of frame periods (docs/performance.md). `warm_up` runs the
 configuration's whole frame path once on a synthetic scene — reference preparation, the global initialiser of the
 first frame, tracking, the control law — so that those launches happen before the service answers anything.
-Kernels are specialised on their template arguments (gain grid, model, interpolation), not on image sizes, so any
+Kernels are specialised on their template arguments (gain grid, model, ρ* degree), not on image sizes, so any
 frame size compiles the same code; the configured or persisted intrinsics are used when known.
 
 Ahead of time: Taichi's offline cache keeps what a warm-up compiled, keyed by each kernel's code and template
