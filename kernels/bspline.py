@@ -30,21 +30,25 @@ LANES = 8  # lines filtered together by one thread: independent recursions, so t
 
 
 @ti.func
-def _at(a: ti.template(), line: ti.i32, i: ti.i32, along_rows: ti.template()) -> ti.f32:
-    value = 0.0
-    if ti.static(along_rows):  # noqa: SIM108 - a compile-time branch: Taichi takes `ti.static` in an if statement
-        value = a[line, i]
+def _load(a: ti.template(), lines: ti.template(), i: ti.i32, along_rows: ti.template()):
+    """Sample `i` of each of the `LANES` lines `lines` of `a` (rows when `along_rows`, else columns), as a vector:
+    one call per step, not one per lane (each call is a tree Taichi's front end walks at every start)."""
+    values = ti.Vector.zero(ti.f32, LANES)
+    if ti.static(along_rows):
+        values = ti.Vector([a[lines[j], i] for j in ti.static(range(LANES))])
     else:
-        value = a[i, line]
-    return value
+        values = ti.Vector([a[i, lines[j]] for j in ti.static(range(LANES))])
+    return values
 
 
 @ti.func
-def _set(a: ti.template(), line: ti.i32, i: ti.i32, along_rows: ti.template(), value: ti.f32):
-    if ti.static(along_rows):
-        a[line, i] = value
-    else:
-        a[i, line] = value
+def _store(a: ti.template(), lines: ti.template(), i: ti.i32, along_rows: ti.template(), values: ti.template()):
+    """`a` at sample `i` of each of the `LANES` lines `lines` ← `values` (as `_load`)."""
+    for j in ti.static(range(LANES)):
+        if ti.static(along_rows):
+            a[lines[j], i] = values[j]
+        else:
+            a[i, lines[j]] = values[j]
 
 
 @ti.func
@@ -59,24 +63,18 @@ def _lines(src: ti.template(), dst: ti.template(), first: ti.i32, n: ti.i32, las
     causal = ti.Vector.zero(ti.f32, LANES)
     zk = 1.0
     for k in range(HORIZON):
-        for j in ti.static(range(LANES)):
-            causal[j] += zk * _at(src, lines[j], o + k, along_rows)
+        causal += zk * _load(src, lines, o + k, along_rows)
         zk *= z
     for i in range(1, n + 1):  # step i stores c⁺[i − 1] and loads s[i]
-        for j in ti.static(range(LANES)):
-            _set(dst, lines[j], o + i - 1, along_rows, causal[j])
+        _store(dst, lines, o + i - 1, along_rows, causal)
         if i < n:
-            loaded = ti.Vector([_at(src, lines[j], o + i, along_rows) for j in ti.static(range(LANES))])
-            causal = loaded + z * causal
-    anti = ti.static(POLE / (POLE * POLE - 1.0)) * (
-        causal + z * ti.Vector([_at(dst, lines[j], o + n - 2, along_rows) for j in ti.static(range(LANES))]))
+            causal = _load(src, lines, o + i, along_rows) + z * causal
+    anti = ti.static(POLE / (POLE * POLE - 1.0)) * (causal + z * _load(dst, lines, o + n - 2, along_rows))
     for m in range(n):  # step m stores c⁻[n − 1 − m] and loads c⁺[n − 2 − m]
         i = n - 1 - m
-        for j in ti.static(range(LANES)):
-            _set(dst, lines[j], o + i, along_rows, gain * anti[j])
+        _store(dst, lines, o + i, along_rows, gain * anti)
         if i > 0:
-            loaded = ti.Vector([_at(dst, lines[j], o + i - 1, along_rows) for j in ti.static(range(LANES))])
-            anti = z * (anti - loaded)
+            anti = z * (anti - _load(dst, lines, o + i - 1, along_rows))
 
 
 @ti.kernel
