@@ -131,32 +131,24 @@ def _powers(t: ti.f32, degree: ti.template()):
     return p
 
 
-# Cubic weights of taps −1, 0, 1, 2 at fraction t ∈ [0, 1) as polynomials `Σ_k c_k t^k` (rows: taps, columns: c_0…c_3).
-KEYS = ((0.0, -0.5, 1.0, -0.5), (1.0, 0.0, -2.5, 1.5), (0.0, 0.5, 2.0, -1.5), (0.0, 0.0, -0.5, 0.5))  # a = −½
-BSPLINE = ((1 / 6, -0.5, 0.5, -1 / 6), (2 / 3, 0.0, -1.0, 0.5), (1 / 6, 0.5, 0.5, -0.5), (0.0, 0.0, 0.0, 1 / 6))
-
-
-@ti.func
-def _tap(t: ti.f32, spline: ti.i32, j: ti.template()):
-    """Weight of tap `j` at fraction `t` and its derivative along `t`: `BSPLINE[j]` when `spline` ≠ 0, else
-    `KEYS[j]` (Horner)."""
-    c0 = ti.select(spline != 0, BSPLINE[j][0], KEYS[j][0])
-    c1 = ti.select(spline != 0, BSPLINE[j][1], KEYS[j][1])
-    c2 = ti.select(spline != 0, BSPLINE[j][2], KEYS[j][2])
-    c3 = ti.select(spline != 0, BSPLINE[j][3], KEYS[j][3])
-    return ((c3 * t + c2) * t + c1) * t + c0, (3.0 * c3 * t + 2.0 * c2) * t + c1
+# Cubic weights of taps −1, 0, 1, 2 at fraction t ∈ [0, 1) as polynomials `Σ_k c_k t^k`: row k holds the four taps'
+# coefficients of t^k.
+KEYS = ((0.0, 1.0, 0.0, 0.0), (-0.5, 0.0, 0.5, 0.0), (1.0, -2.5, 2.0, -0.5), (-0.5, 1.5, -1.5, 0.5))  # a = −½
+BSPLINE = ((1 / 6, 2 / 3, 1 / 6, 0.0), (-0.5, 0.0, 0.5, 0.0), (0.5, -1.0, 0.5, 0.0), (-1 / 6, 0.5, -0.5, 1 / 6))
 
 
 @ti.func
 def _weights(t: ti.f32, spline: ti.i32):
-    """Weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1) and their derivatives: the cubic B-spline when
-    `spline` ≠ 0, else Keys cubic convolution (a = −½). A run-time choice of coefficients (loop-invariant selects,
-    no branch), so that one compiled kernel samples either way and the pixel loop stays vectorised."""
-    w0, d0 = _tap(t, spline, 0)
-    w1, d1 = _tap(t, spline, 1)
-    w2, d2 = _tap(t, spline, 2)
-    w3, d3 = _tap(t, spline, 3)
-    return ti.Vector([w0, w1, w2, w3]), ti.Vector([d0, d1, d2, d3])
+    """Weights of taps −1, 0, 1, 2 at fraction `t` ∈ [0, 1) and their derivatives along `t` (Horner): the cubic
+    B-spline's when `spline` ≠ 0, else Keys cubic convolution's (a = −½). A run-time choice of coefficients
+    (loop-invariant selects, no branch), so that one compiled kernel samples either way and the pixel loop stays
+    vectorised."""
+    b = spline != 0
+    c0 = ti.select(b, ti.Vector(BSPLINE[0]), ti.Vector(KEYS[0]))
+    c1 = ti.select(b, ti.Vector(BSPLINE[1]), ti.Vector(KEYS[1]))
+    c2 = ti.select(b, ti.Vector(BSPLINE[2]), ti.Vector(KEYS[2]))
+    c3 = ti.select(b, ti.Vector(BSPLINE[3]), ti.Vector(KEYS[3]))
+    return ((c3 * t + c2) * t + c1) * t + c0, (3.0 * c3 * t + 2.0 * c2) * t + c1
 
 
 @ti.func
