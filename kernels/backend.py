@@ -115,12 +115,13 @@ def _source_read_once() -> None:
 
 @contextmanager
 def compile_settings() -> Iterator[None]:
-    """Taichi's settings for compiling the frame-path kernels (`planar_step`, `general_step`), restored on exit: its
-    CFG optimisation (store-to-load forwarding, dead stores) and its advanced optimisations (constant folding,
-    algebraic simplification, common subexpressions, loop-invariant code motion) off, LLVM's own passes doing that
-    work instead. On those kernels' unrolled accumulations Taichi's passes were most of a cold compile, growing with
-    the gain grid (docs/performance.md, Compile time); without them a cold compile takes a third of the CPU time or
-    less, with the same sums up to float32 rounding and the same launch and warm-cache times within the noise.
+    """Taichi's settings for compiling the unrolled accumulating kernels (`planar_step`, `general_step`, the global
+    initialiser's `screen_step`), restored on exit: its CFG optimisation (store-to-load forwarding, dead stores) and
+    its advanced optimisations (constant folding, algebraic simplification, common subexpressions, loop-invariant
+    code motion) off, LLVM's own passes doing that work instead. On those kernels' unrolled accumulations Taichi's
+    passes were most of a cold compile, growing with the gain grid (docs/performance.md, Compile time); without them
+    a cold compile takes much less CPU time, with the same sums up to float32 rounding and the same launch and
+    warm-cache times within the noise.
     Enclose whatever compiles a specialisation: its first plain call, or the construction of a
     `kernels.launch.Prepared` for it (on the CPU; another backend compiles at the first launch, with Taichi's
     defaults). Taichi's offline cache keys on these settings, so a kernel compiled outside keeps an entry of its own.

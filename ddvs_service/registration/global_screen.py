@@ -32,6 +32,7 @@ from ddvs_service.registration.images import level_matrix
 from ddvs_service.registration.planar import project
 from ddvs_service.registration.reference import normalisation
 from ddvs_service.registration.solver import DEGENERATE_RCOND, MAD_TO_SIGMA, remaining_motion
+from kernels.backend import compile_settings
 from kernels.exclusive import GATE
 from kernels.global_screen import (
     FRAME_NORM,
@@ -168,7 +169,8 @@ class BatchScreen:
             params[idx, START_G : START_G + 9] = G_l[idx].reshape(-1, 9)
             batch = np.ascontiguousarray(params[idx])
             GATE.checkpoint()  # a frame waiting for Taichi goes first (`kernels.exclusive`)
-            screen_step(ref, cur, batch, level.frame, out[: idx.size])
+            with compile_settings():  # its first call compiles it (`kernels.backend.compile_settings`)
+                screen_step(ref, cur, batch, level.frame, out[: idx.size])
             GATE.checkpoint()  # and again before the numpy work on the sums (`kernels.exclusive`)
             acc = out[: idx.size, :N_SUMS].astype(np.float64)
             n_valid = acc[:, N_TRIANGLE + N_UNKNOWNS]
