@@ -65,7 +65,7 @@ def test_sums_match_the_kernel_compiled_with_taichis_defaults() -> None:
     for name, module in (("settings", gs), ("defaults", defaults)):
         work = np.zeros(gs.work_size(n), dtype=np.float32)
         with compile_settings() if module is gs else contextlib.nullcontext():
-            module.general_step(ref, cur, params, work, 2, 1, False, 1, 1, False)
+            module.general_step(ref, cur, params, work, 2, 1, False, 1, 1, 0)
         sums[name] = work[:gs.n_acc(n)].astype(np.float64)
     nt = n * (n + 1) // 2
     a, b = sums["settings"], sums["defaults"]
