@@ -48,25 +48,25 @@ class ParallaxBasis:
         x0, y0, w, h = roi
         centre = (x0 + 0.5 * (w - 1), y0 + 0.5 * (h - 1))
         half = 0.5 * max(w - 1, h - 1)
-        u, v = np.meshgrid(np.arange(x0, x0 + w, dtype=np.float64), np.arange(y0, y0 + h, dtype=np.float64))
-        mono = _monomials((u.ravel() - centre[0]) / half, (v.ravel() - centre[1]) / half, degree)
-        # Modified Gram–Schmidt in the order 1, y, x, …: the first three orthonormal vectors span {1, x, y}.
+        x = (np.arange(x0, x0 + w, dtype=np.float64) - centre[0]) / half
+        y = (np.arange(y0, y0 + h, dtype=np.float64) - centre[1]) / half
+        # Gram matrix of the monomials over the ROI's pixel centres, mean of x^(i+k) y^(j+l): the grid is a product
+        # of its rows and columns, so each entry is a product of two 1-D power means.
+        mean_x = np.array([np.mean(x**k) for k in range(2 * degree + 1)])
+        mean_y = np.array([np.mean(y**k) for k in range(2 * degree + 1)])
+        i, j = np.divmod(np.arange((degree + 1) ** 2), degree + 1)  # monomial m = i·(degree + 1) + j
+        gram = mean_x[i[:, None] + i[None, :]] * mean_y[j[:, None] + j[None, :]]
+        # Modified Gram–Schmidt in the order 1, y, x, …, on coefficient vectors (inner product `aᵀ gram b`): the first
+        # three orthonormal functions span {1, x, y}.
         first = [0, 1, degree + 1]
-        order = first + [m for m in range(mono.shape[1]) if m not in first]
-        n = mono.shape[0]
+        order = first + [m for m in range(gram.shape[0]) if m not in first]
         coeffs: list[F64] = []
-        vectors: list[F64] = []
         for m in order:
-            c = np.zeros(mono.shape[1])
+            c = np.zeros(gram.shape[0])
             c[m] = 1.0
-            vec = mono[:, m].copy()
-            for cq, q in zip(coeffs, vectors):
-                proj = float(q @ vec) / n
-                vec -= proj * q
-                c -= proj * cq
-            norm = float(np.sqrt(vec @ vec / n))
-            coeffs.append(c / norm)
-            vectors.append(vec / norm)
+            for cq in coeffs:
+                c -= float(cq @ gram @ c) * cq
+            coeffs.append(c / float(np.sqrt(c @ gram @ c)))
         return cls(roi, degree, np.array(coeffs[3:]), centre, half)
 
     @property
