@@ -177,22 +177,14 @@ def test_a_frame_sent_during_the_warm_up_is_the_first_answered_and_tracked_from_
     serves. That frame is registered at once from the persisted last good estimate (on the loop thread, not handed
     to the background search), and is the first of `confirm_frames` tracked frames the servo holds still for. The
     restarted process gets an empty Taichi offline cache, so its warm-up compiles (about 1.5 s here, three times a
-    warm one) and the test's command lands inside it: with the set-up's warm cache the warm-up could end before the
-    command (a fresh clone's run)."""
+    warm one) and the test's command lands inside it; a warm-up that was over before the command (a fresh clone's run
+    at load 5 once) is not what this test is about: the service is restarted again, at most `WARM_UP_TRIES` times."""
     port = free_port()
     config = service_config(port, tmp_path / "state")
     img, view = scene(), shifted(scene(), 5.0, 3.0)
     _servo_until_tracked(config, tmp_path, port, img, view)
-    monkeypatch.setenv("TI_OFFLINE_CACHE_FILE_PATH", str(tmp_path / "empty-taichi-cache"))
-    service = Service(config, tmp_path)
-    op = Operator(port)
+    service, op = _restarted_in_its_warm_up(config, tmp_path, port, monkeypatch)
     try:
-        deadline = time.monotonic() + 60.0
-        while not op.frames.matching_status.matching:
-            assert service.proc.poll() is None and time.monotonic() < deadline, "the camera was never subscribed"
-            time.sleep(0.005)
-        with pytest.raises(AssertionError, match="no reply"):  # nothing answers yet: the warm-up runs
-            op.command(op="get_state", timeout=0.05)
         first = op.send(view)  # waits in the inbox until the loop starts
         assert first["frame_stamp_ns"] == 33_000_000, first
         assert first["state"] == "LOST" and not np.any(op.twists[-1]), first
@@ -204,6 +196,32 @@ def test_a_frame_sent_during_the_warm_up_is_the_first_answered_and_tracked_from_
         code, _ = service.stop()
         op.close()
     assert code == 0
+
+
+WARM_UP_TRIES = 3
+
+
+def _restarted_in_its_warm_up(config: ServiceConfig, tmp_path: Path, port: int,
+                              monkeypatch: pytest.MonkeyPatch) -> tuple[Service, Operator]:
+    """The service restarted with an empty Taichi offline cache and an operator whose frames it subscribes to, while
+    its warm-up still runs (its command queryable not declared: no reply within 50 ms)."""
+    for attempt in range(WARM_UP_TRIES):
+        monkeypatch.setenv("TI_OFFLINE_CACHE_FILE_PATH", str(tmp_path / f"empty-taichi-cache-{attempt}"))
+        service = Service(config, tmp_path)
+        op = Operator(port)
+        deadline = time.monotonic() + 60.0
+        while not op.frames.matching_status.matching:
+            assert service.proc.poll() is None and time.monotonic() < deadline, "the camera was never subscribed"
+            time.sleep(0.005)
+        try:
+            op.command(op="get_state", timeout=0.05)
+        except AssertionError as error:  # no reply: the warm-up runs
+            assert "no reply" in str(error), error
+            return service, op
+        code, _ = service.stop()
+        op.close()
+        assert code == 0
+    raise AssertionError(f"the service answered before its warm-up could be observed in {WARM_UP_TRIES} restarts")
 
 
 def test_a_restart_whose_view_moved_away_tries_the_persisted_estimate_once_then_searches_globally(
