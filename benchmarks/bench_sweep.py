@@ -1,8 +1,9 @@
 """Wall time of a convergence-domain sweep one trial after another (`--workers 1`) against a local Ray of 2 workers
 (docs/sweeps.md), and what Ray adds to each trial.
 
-Run: `.venv/bin/python benchmarks/bench_sweep.py [--trials 20 --sizes 1 2 --max-images 80]` (2 sizes × 20 trials: a
-sweep of 40 planar DDVS trials). Prints, with the load average before and after each phase:
+Run: `.venv/bin/python benchmarks/bench_sweep.py [--trials 10 --sizes 1 2 3 4 --max-images 400]` (4 sizes × 10
+trials with the domain sweep's own image budget: a sweep of 40 planar DDVS trials, 0.05 m / 15° to 0.2 m / 60°).
+Prints, with the load average before and after each phase:
 - the sweep's wall time both ways (the Ray one includes starting and stopping the local Ray, and each worker's Taichi
   start-up), the speed-up, and whether the two journals are the same file;
 - Ray's own cost: starting and stopping a local Ray, and per trial the time from submitting a trial to having its
@@ -74,9 +75,12 @@ def ray_overhead(settings: DomainSettings, trials: int) -> tuple[float, list[flo
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=20, help="trials per size (default 20)")
-    parser.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0], help="sizes (default 1 2)")
-    parser.add_argument("--max-images", type=int, default=80, help="image budget per trial (default 80)")
+    defaults = DomainSettings()
+    parser.add_argument("--trials", type=int, default=defaults.trials, help="trials per size (default %(default)s)")
+    parser.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0, 3.0, 4.0],
+                        help="sizes (default 1 2 3 4)")
+    parser.add_argument("--max-images", type=int, default=defaults.max_images,
+                        help="image budget per trial (default %(default)s, the domain sweep's)")
     parser.add_argument("--overhead-trials", type=int, default=8, help="trials timed one at a time (default 8)")
     args = parser.parse_args()
     settings = DomainSettings(targets=("planar",), laws=("ddvs",), sizes=tuple(args.sizes), trials=args.trials,
