@@ -157,6 +157,8 @@ def test_cli_reference_documents_every_subcommand_and_option() -> None:
         assert f"## `ddvs {name}`" in page, f"no section for ddvs {name}"
     serve_options = ["--config", "--state-dir", "--fresh", "--no-warmup", "--warmup-only", "--connect"]
     assert all(f"`{option}" in page for option in serve_options)
+    assert "%(" not in page, "help text not expanded as --help prints it"  # e.g. "(default %(default)s)"
+    assert "(default 100: from identity" in page  # ddvs register --max-iterations, expanded
 
 
 def test_protocol_reference_documents_every_key_and_message() -> None:

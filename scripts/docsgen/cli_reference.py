@@ -29,6 +29,14 @@ def _default(action: argparse.Action) -> str:
     return code(action.default)
 
 
+def _help(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
+    """The help text as `--help` prints it: `%(default)s`, `%(prog)s` and the like expanded (argparse's own
+    expansion)."""
+    if not action.help:
+        return ""
+    return argparse.HelpFormatter(parser.prog)._expand_help(action)
+
+
 def _name(action: argparse.Action) -> str:
     names = ", ".join(action.option_strings) if action.option_strings else action.dest
     metavar = action.metavar
@@ -50,7 +58,7 @@ def _section(parser: argparse.ArgumentParser, level: int) -> str:
         out.append(parser.description.strip() + "\n")
     out.append(f"```text\n{_usage(parser)}\n```\n")
     rows = [
-        [_name(a), _default(a), cell(a.help or "")]
+        [_name(a), _default(a), cell(_help(parser, a))]
         for a in parser._actions
         if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) and a.help != argparse.SUPPRESS
     ]
