@@ -143,10 +143,13 @@ def test_a_sweep_on_a_two_node_cluster_journals_what_the_sequential_sweep_does(t
 @pytest.fixture
 def sweep_cli(tmp_path: Path) -> Iterator[subprocess.Popen[str]]:
     """`ddvs experiment domain` of `SWEEP` on a local Ray of 2 workers, into `tmp_path`, in a process group of its own
-    (as a terminal's job: Ctrl-C signals the whole group); the group is killed if still running."""
+    with Ctrl-C's default action (as a terminal's foreground job: Ctrl-C signals the whole group; a test run started
+    in the background, where SIGINT is ignored and the command would inherit that, made the sweep run to its end);
+    the group is killed if still running."""
     proc = subprocess.Popen([sys.executable, "-m", "ddvs", *SWEEP_ARGS, "--workers", "2", "--out", str(tmp_path)],
                             cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     yield proc
     if proc.poll() is None:
         os.killpg(proc.pid, signal.SIGKILL)
