@@ -2,8 +2,8 @@
 
 Steps, each a subprocess with `DDVS_TAICHI_ARCH` set to the backend (docs/gpu.md):
 1. `tests/test_kernels_devices.py` for the backend, required (`DDVS_REQUIRE_DEVICES`: a missing device fails);
-2. `bench_registration.py`, `bench_general.py`, `bench_global_init.py` and `bench_frame_cost.py` (the inputs of
-   the robots-per-device model, docs/performance.md) with shortened settings.
+2. `bench_registration.py`, `bench_general.py`, `bench_global_init.py`, `bench_frame_cost.py` and `bench_batched.py`
+   (the inputs of the robots-per-device models, docs/performance.md) with shortened settings.
 The table lists each step's result, wall time and headline figures (a benchmark's lines with a median, or its
 markdown rows), with the machine and its load average before and after.
 
@@ -30,6 +30,8 @@ BENCHMARKS = (
     ("bench_general", ["--frames", "20"]),
     ("bench_global_init", ["--repeats", "3"]),
     ("bench_frame_cost", ["--frames", "60", "--warm-up", "15"]),  # launches and cost per frame: docs/performance.md
+    # the batched fleet path's launch cost t_0 and per-pixel cost on this backend ("{arch}": the step's backend)
+    ("bench_batched", ["--arch", "{arch}", "--robots", "1", "4", "16", "--cycles", "8"]),
 )
 
 
@@ -92,7 +94,8 @@ def main() -> int:
     steps = [run_step(f"device tests ({args.arch}{', collected' if args.dry_run else ''})", tests, backend,
                       "" if args.dry_run else args.arch, timeout=240)]
     for name, options in BENCHMARKS:
-        steps.append(run_step(name, [sys.executable, f"benchmarks/{name}.py", *options], backend, "", timeout=180))
+        command = [sys.executable, f"benchmarks/{name}.py", *(option.format(arch=backend) for option in options)]
+        steps.append(run_step(name, command, backend, "", timeout=180))
     print(table(steps, backend, (loads, os.getloadavg()[0])))
     return 0 if all(step.ok for step in steps) else 1
 

@@ -20,6 +20,7 @@ def test_the_dry_run_prints_one_table_of_passed_steps() -> None:
     table = done.stdout[done.stdout.index("Device check: Taichi backend cpu"):].splitlines()
     rows = [line for line in table if line.startswith("| ") and not line.startswith("| Step")]
     assert [row.split(" | ")[0] for row in rows] == ["| device tests (cuda, collected)", "| bench_registration",
-                                                     "| bench_general", "| bench_global_init", "| bench_frame_cost"]
+                                                     "| bench_general", "| bench_global_init", "| bench_frame_cost",
+                                                     "| bench_batched"]
     assert all(row.split(" | ")[1] == "ok" for row in rows), rows
     assert "tests collected" in rows[0] and "ms" in rows[1]
