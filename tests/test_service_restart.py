@@ -50,7 +50,9 @@ def test_restart_resumes_without_camera_info(tmp_path: Path) -> None:
 
 def test_a_reference_frame_that_comes_before_its_camera_info_waits_for_it(tmp_path: Path) -> None:
     """A camera's image and info travel on two topics (over ROS 2, two links): a `next_frame` reference whose frame
-    arrives before any camera info stays pending, and the first frame after the info becomes the reference."""
+    arrives before any camera info stays pending, and the first frame after the info becomes the reference. "After":
+    once the service took the info (it persists the intrinsics then); a frame put right behind the info may be taken
+    first, the two topics being delivered apart (a fresh clone's run saw IDLE)."""
     port = free_port()
     config = service_config(port, tmp_path / "state").model_copy(update={"intrinsics": None})
     img = scene()
@@ -58,6 +60,10 @@ def test_a_reference_frame_that_comes_before_its_camera_info_waits_for_it(tmp_pa
         assert op.command(op="set_reference", source="next_frame").ok
         assert op.send(img)["state"] == "IDLE"  # answered, no intrinsics yet: still waiting
         publish_camera_info(op)
+        state_file, deadline = tmp_path / "state" / "state.json", time.monotonic() + 20.0
+        while not (state_file.exists() and json.loads(state_file.read_text()).get("intrinsics")):
+            assert time.monotonic() < deadline, "the service never took the camera info"
+            time.sleep(0.01)
         assert op.send(img)["state"] == "READY"
         assert op.command(op="start").ok
 
