@@ -383,15 +383,20 @@ def general_step(
     span = load_vector(params, PARAMS_SPAN, 4)
     gains = load_vector(params, PARAMS_GAINS, grid_rows * grid_cols)
     domain = load_vector(params, PARAMS_DOMAIN, 4)
+    # The bands' partial sums and |r| histograms start at 0; each region is contiguous over the `nb` bands, so one
+    # serial loop over a run-time count clears it (a loop of a constant count per band: LLVM unrolls it into
+    # hundreds of stores to generate at every start).
+    ti.loop_config(serialize=True)
+    for k in range(nb * NACC):
+        work[NACC + k] = 0.0
+    ti.loop_config(serialize=True)
+    for k in range(nb * HIST_BINS):
+        work[NACC * (1 + MAX_BANDS) + k] = 0.0
     for it in range(nb * 512):  # one band per 512-iteration block (PLATFORM-NOTES)
         if it % 512 == 0:
             b = it // 512
             abase = (1 + b) * NACC  # this band's partial sums, then its |r| histogram
             hbase = NACC * (1 + MAX_BANDS) + b * HIST_BINS
-            for k in range(NACC):
-                work[abase + k] = 0.0
-            for k in range(HIST_BINS):
-                work[hbase + k] = 0.0
             magnitude = ti.Vector.zero(ti.f32, ROW_TILE)  # |r| of the tile row being accumulated
             cki = ti.Vector.zero(ti.f32, max(NR * NX, 1))  # the ρ* basis along the row (`row_basis`)
             firsts = ti.Vector.zero(ti.i32, P)  # scratch of `fold_row`
