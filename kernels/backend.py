@@ -114,7 +114,7 @@ def _source_read_once() -> None:
 
 
 @contextmanager
-def compile_settings() -> Iterator[None]:
+def compile_settings(advanced: bool = False) -> Iterator[None]:
     """Taichi's settings for compiling the unrolled accumulating kernels (`planar_step`, `general_step`, the global
     initialiser's `screen_step`), restored on exit: its CFG optimisation (store-to-load forwarding, dead stores) and
     its advanced optimisations (constant folding, algebraic simplification, common subexpressions, loop-invariant
@@ -122,6 +122,9 @@ def compile_settings() -> Iterator[None]:
     passes were most of a cold compile, growing with the gain grid (docs/performance.md, Compile time); without them
     a cold compile takes much less CPU time, with the same sums up to float32 rounding and the same launch and
     warm-cache times within the noise.
+    `advanced`: keep the advanced optimisations on, the CFG optimisation alone off (the B-spline prefilter: the
+    same coefficients and launch time with a fifth less CPU time cold; without Taichi's loop-invariant code motion
+    its launches took a third longer, LLVM not telling its loads and stores through one array apart).
     Enclose whatever compiles a specialisation: its first plain call, or the construction of a
     `kernels.launch.Prepared` for it (on the CPU; another backend compiles at the first launch, with Taichi's
     defaults). Taichi's offline cache keys on these settings, so a kernel compiled outside keeps an entry of its own.
@@ -129,7 +132,8 @@ def compile_settings() -> Iterator[None]:
     which hands over only at a checkpoint, and none lies in here), so no other kernel compiles under them."""
     config = impl.current_cfg()
     saved = config.cfg_optimization, config.advanced_optimization
-    config.cfg_optimization = config.advanced_optimization = False
+    config.cfg_optimization = False
+    config.advanced_optimization = advanced
     try:
         yield
     finally:

@@ -24,6 +24,8 @@ import numpy as np
 import taichi as ti
 from numpy.typing import NDArray
 
+from kernels.backend import compile_settings
+
 POLE = math.sqrt(3.0) - 2.0
 HORIZON = 12  # |z|^12 = 1.4e-7: the causal start's truncation, below float32 resolution
 LANES = 8  # lines filtered together by one thread: independent recursions, so that their latencies overlap
@@ -125,4 +127,5 @@ def coefficients(image: NDArray[np.float32], out: NDArray[np.float32], window: N
     if window is None:
         window = np.array([0, image.shape[0], 0, image.shape[1]], dtype=np.int32)
     check_buffers(image, out, window)
-    bspline_coefficients(image, out, window)
+    with compile_settings(advanced=True):  # as the registration compiles it (`spline_window`)
+        bspline_coefficients(image, out, window)

@@ -45,6 +45,7 @@ class SplineWindow:
     def covering(self, image: F32, box: Box) -> F32:
         """The coefficients of `image` (the same buffer, reloaded in place, between `invalidate` calls), exact for
         every sample in `self.domain`, which contains `box` (the whole image when `box` is not finite)."""
+        from kernels.backend import compile_settings
         from kernels.bspline import bspline_coefficients, check_buffers, window_for
 
         d = self.domain
@@ -56,7 +57,8 @@ class SplineWindow:
         self._window[:] = window_for(image.shape, *domain)
         if self._launch is None or self._launch[0] is not image:
             check_buffers(image, self.buffer, self._window)
-            self._launch = image, Prepared(bspline_coefficients, image, self.buffer, self._window)
+            with compile_settings(advanced=True):  # its first preparation compiles it (`kernels.bspline`)
+                self._launch = image, Prepared(bspline_coefficients, image, self.buffer, self._window)
         self._launch[1]()
         self.domain = domain
         return self.buffer
