@@ -43,6 +43,7 @@ FRAME_ROI = 0  # frame: u0, v0, u1, v1 (inclusive ROI bounds), cx, cy, s (normal
 FRAME_NORM = 4
 N_FRAME = 7
 HUBER = 1
+ROW_TILE = 128  # pixels of a row accumulated before their |r| are stored (the thread-local buffer's length)
 BLOCK = 512  # a CPU parallel loop hands out blocks of ≥ 512 iterations: one start per block spreads them over threads
 # The sl(3) generators A_1…A_8 (row-major), in the order of `ddvs_service.lie.SL3_GENERATORS` (the caller checks
 # that they agree); compile-time constants, so that their zeros fold away.
@@ -94,8 +95,9 @@ def screen_step(
     out: ti.types.ndarray(dtype=ti.f32, ndim=2),
 ):
     """Fill `out[k]` for every start `k` of `starts` (K × `N_START`); see the module docstring.
-    Each start is one thread's work; its accumulation loop only loads and sums in registers (vectorised), and a
-    second loop stores |r|."""
+    Each start is one thread's work; its accumulation loop over a tile of a row only loads, sums in registers and
+    keeps |r| in a thread-local buffer (vectorised), and a second loop stores those |r| (computing them again there
+    doubled the pixel terms LLVM compiles at every start)."""
     u0 = ti.cast(frame[FRAME_ROI + 0], ti.i32)
     v0 = ti.cast(frame[FRAME_ROI + 1], ti.i32)
     u1 = ti.cast(frame[FRAME_ROI + 2], ti.i32)
@@ -115,31 +117,36 @@ def screen_step(
             sigma = starts[k, START_SIGMA]
             kind = ti.select(sigma > 0.0, HUBER, 0)
             acc = ti.Vector.zero(ti.f32, N_SUMS)
+            magnitude = ti.Vector.zero(ti.f32, ROW_TILE)  # |r| of the tile row being accumulated
             for v in range(v0, v1 + 1):
                 qv = (v - cy) / s
-                for u in range(u0, u1 + 1):
-                    ok, r, gx, gy, c0 = pixel_terms(ref, cur, G, gain, bias, u, v)
-                    valid = ti.select(ok, 1.0, 0.0)
-                    qu = (u - cx) / s
-                    J = ti.Vector.zero(ti.f32, N_UNKNOWNS)
-                    for i in ti.static(range(N_GEOMETRIC)):
-                        a = ti.static(GENERATORS[i])
-                        mu = a[0] * qu + a[1] * qv + a[2]
-                        mv = a[3] * qu + a[4] * qv + a[5]
-                        mz = a[6] * qu + a[7] * qv + a[8]
-                        J[i] = s * (gx * (mu - qu * mz) + gy * (mv - qv * mz))
-                    J[N_GEOMETRIC] = c0
-                    J[N_GEOMETRIC + 1] = valid
-                    w = valid * robust_weight(r, sigma, kind)
-                    for i in ti.static(range(N_UNKNOWNS)):
-                        wi = w * J[i]
-                        for j in ti.static(range(i, N_UNKNOWNS)):
-                            acc[ti.static(i * N_UNKNOWNS - i * (i - 1) // 2 + j - i)] += wi * J[j]
-                        acc[N_TRIANGLE + i] += wi * r
-                    acc[N_TRIANGLE + N_UNKNOWNS] += valid
-                    acc[N_TRIANGLE + N_UNKNOWNS + 1] += valid * r * r
-                for u in range(u0, u1 + 1):
-                    ok, r, _gx, _gy, _c0 = pixel_terms(ref, cur, G, gain, bias, u, v)
-                    out[k, N_SUMS + (v - v0) * width + (u - u0)] = ti.select(ok, ti.abs(r), -1.0)
+                for tile in range((width + ROW_TILE - 1) // ROW_TILE):
+                    ut0 = u0 + tile * ROW_TILE
+                    ut1 = ti.min(ut0 + ROW_TILE - 1, u1)
+                    # Loads, register sums and stores into the thread-local `magnitude` only: vectorised.
+                    for u in range(ut0, ut1 + 1):
+                        ok, r, gx, gy, c0 = pixel_terms(ref, cur, G, gain, bias, u, v)
+                        valid = ti.select(ok, 1.0, 0.0)
+                        qu = (u - cx) / s
+                        J = ti.Vector.zero(ti.f32, N_UNKNOWNS)
+                        for i in ti.static(range(N_GEOMETRIC)):
+                            a = ti.static(GENERATORS[i])
+                            mu = a[0] * qu + a[1] * qv + a[2]
+                            mv = a[3] * qu + a[4] * qv + a[5]
+                            mz = a[6] * qu + a[7] * qv + a[8]
+                            J[i] = s * (gx * (mu - qu * mz) + gy * (mv - qv * mz))
+                        J[N_GEOMETRIC] = c0
+                        J[N_GEOMETRIC + 1] = valid
+                        w = valid * robust_weight(r, sigma, kind)
+                        for i in ti.static(range(N_UNKNOWNS)):
+                            wi = w * J[i]
+                            for j in ti.static(range(i, N_UNKNOWNS)):
+                                acc[ti.static(i * N_UNKNOWNS - i * (i - 1) // 2 + j - i)] += wi * J[j]
+                            acc[N_TRIANGLE + i] += wi * r
+                        acc[N_TRIANGLE + N_UNKNOWNS] += valid
+                        acc[N_TRIANGLE + N_UNKNOWNS + 1] += valid * r * r
+                        magnitude[u - ut0] = ti.select(ok, ti.abs(r), -1.0)
+                    for j in range(ut1 - ut0 + 1):
+                        out[k, N_SUMS + (v - v0) * width + (ut0 - u0) + j] = magnitude[j]
             for i in ti.static(range(N_SUMS)):
                 out[k, i] = acc[i]
