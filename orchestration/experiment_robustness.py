@@ -43,7 +43,7 @@ from ddvs_service.camera import Intrinsics
 from ddvs_service.control.law import ControlConfig, ControlLaw
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
 from ddvs_service.service.config import ServiceConfig
-from ddvs_service.service.pipeline import ServoPipeline
+from ddvs_service.service.pipeline import ServoPipeline, StepResult
 from ddvs_service.service.state import ServoState
 from orchestration.experiment_domain import DomainSettings, trial_start
 from orchestration.experiment_synthetic import LAW_NAMES, PAPER_R, PAPER_ROI_SIZE, PAPER_T
@@ -288,10 +288,11 @@ def run_one(target_name: str, law: str, start: str, condition_name: str, setting
 
 
 def servo(run: Run, plant: Plant, pipeline: ServoPipeline, roi: Roi, condition: RobustnessCondition,
-          settings: RobustnessSettings) -> Run:
+          settings: RobustnessSettings, observe: Callable[[GroundTruth, StepResult], None] | None = None) -> Run:
     """Close the loop on `plant` through `pipeline` (its reference set, template box `roi`) under `condition`
     until CONVERGED, the budget, `LOST_LIMIT_FRAMES` LOST frames in a row or the camera leaves the volume; fills
-    `run` (traces, integrity measures, verdict) and returns it."""
+    `run` (traces, integrity measures, verdict) and returns it. `observe(truth, step)`: called with each processed
+    frame's ground truth and the pipeline's answer (dropped frames are not processed)."""
     config, told = pipeline.config, pipeline.intrinsics
     assert told is not None, "the pipeline needs the told intrinsics"
     pipeline.machine.start()
@@ -314,6 +315,8 @@ def servo(run: Run, plant: Plant, pipeline: ServoPipeline, roi: Roi, condition: 
             continue
         image = apply(condition.images, plant.image(), FrameContext(plant.index, plant.index * DT, roi, motion))
         step = pipeline.step(image.astype(np.uint8))
+        if observe is not None:
+            observe(truth, step)
         run.images += 1
         run.error_norms.append(step.error_norm)
         run.states.append(step.state.value)
