@@ -1,4 +1,4 @@
-"""Per-kernel breakdown of `ddvs serve --config FILE --warmup-only` (issue 30): for each Taichi kernel specialisation
+"""Per-kernel breakdown of `ddvs serve --config FILE --warmup-only`: for each Taichi kernel specialisation
 the warm-up compiles, the process CPU time of its Python front end (`Kernel.materialize`: AST walk, IR built), of
 `compile_kernel` (with the offline cache cold: Taichi's IR passes and LLVM's optimisation, then the cache entry;
 warm: the cache load) and of its first launch (machine code generated from the LLVM IR), in that process.
