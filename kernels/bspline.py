@@ -59,7 +59,10 @@ def _lines(src: ti.template(), dst: ti.template(), first: ti.i32, n: ti.i32, las
     """Filter the `LANES` lines `first …` (rows when `along_rows`, else columns) over the `n` samples `o … o + n − 1`
     from `src` into `dst` (which may be `src`): `dst = gain · c⁻` (module docstring). Lanes past `last_line` repeat
     it: every step loads all lanes before it stores any, so a repeated line computes and stores the same values as
-    its owner."""
+    its owner. Each recursion is a `while` loop that tests for its end between a step's stores and its loads, not at
+    the loop's end: LLVM does not unroll such a loop (a `for` loop with a run-time count it unrolls several times
+    over, plus a remainder copy), so its machine code holds one step; every start pays for that machine code when it
+    loads the cached kernel."""
     z = ti.static(POLE)
     lines = ti.Vector([ti.min(first + j, last_line) for j in ti.static(range(LANES))])
     causal = ti.Vector.zero(ti.f32, LANES)
@@ -67,16 +70,20 @@ def _lines(src: ti.template(), dst: ti.template(), first: ti.i32, n: ti.i32, las
     for k in range(HORIZON):
         causal += zk * _load(src, lines, o + k, along_rows)
         zk *= z
-    for i in range(1, n + 1):  # step i stores c⁺[i − 1] and loads s[i]
-        _store(dst, lines, o + i - 1, along_rows, causal)
-        if i < n:
-            causal = _load(src, lines, o + i, along_rows) + z * causal
+    i = 0
+    while True:  # step i stores c⁺[i] and loads s[i + 1]
+        _store(dst, lines, o + i, along_rows, causal)
+        if i == n - 1:
+            break
+        i += 1
+        causal = _load(src, lines, o + i, along_rows) + z * causal
     anti = ti.static(POLE / (POLE * POLE - 1.0)) * (causal + z * _load(dst, lines, o + n - 2, along_rows))
-    for m in range(n):  # step m stores c⁻[n − 1 − m] and loads c⁺[n − 2 − m]
-        i = n - 1 - m
+    while True:  # step i stores c⁻[i] and loads c⁺[i − 1], from i = n − 1 (where the causal loop ended) down
         _store(dst, lines, o + i, along_rows, gain * anti)
-        if i > 0:
-            anti = z * (anti - _load(dst, lines, o + i - 1, along_rows))
+        if i == 0:
+            break
+        i -= 1
+        anti = z * (anti - _load(dst, lines, o + i, along_rows))
 
 
 @ti.kernel
