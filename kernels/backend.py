@@ -14,8 +14,10 @@ from __future__ import annotations
 import ast
 import functools
 import os
+import textwrap
 from collections.abc import Iterator
 from contextlib import contextmanager
+from types import SimpleNamespace
 
 import taichi as ti
 from taichi.lang import impl, kernel_impl
@@ -109,8 +111,11 @@ def _source_read_once() -> None:
     block) each time it builds the function's tree, which is once per kernel and once per `ti.func` call site with
     its own template arguments: about a fifth of the front end's time at a start with the offline cache warm
     (docs/performance.md, Start-up). The source of a loaded module does not change, so read it once per function
-    (Taichi copies the lines it is given and parses a fresh tree from them every time)."""
+    (Taichi copies the lines it is given and parses a fresh tree from them every time). At each build Taichi also
+    re-wraps every line (`textwrap.fill`) and dedents the block (`textwrap.dedent`) before it parses it: pure
+    functions of the same lines, cached as well (its module uses `textwrap` for nothing else)."""
     kernel_impl.getsourcelines = functools.cache(kernel_impl.getsourcelines)
+    kernel_impl.textwrap = SimpleNamespace(fill=functools.cache(textwrap.fill), dedent=functools.cache(textwrap.dedent))
 
 
 @contextmanager
