@@ -19,6 +19,14 @@ Gauge (the freedoms of (2), fixed explicitly):
 The control error (16) uses the product `ρ*(m*) e'`, invariant to the scale gauge; the plane gauge changes
 `ε̄_v` by a factor `det(·)^(1/3)` that tends to 1 at the equilibrium (EQUATIONS.md).
 
+Held epipole (`track`, with `config.hold_epipole_px` > 0): near the equilibrium the parallax `ρ* e` falls below what a
+noisy frame can measure, and a free `e` then trades image noise against `G` along the tilt that keeps the control
+point still (results/robustness: twice the control error's noise under JPEG on a dimmed scene). A tracked frame
+whose warm start's parallax is below `hold_epipole_px` RMS holds `e` at 0 (the equilibrium's epipole: the planar fit,
+with the same fixed point, biased by the parallax it ignores) and frees it again, solving that frame once more, when
+the frame's own Gauss-Newton step on `e` (profiled over the other unknowns) would move the probe points by
+`FREE_EPIPOLE_FACTOR` × `hold_epipole_px` or more, or when the held fit fails.
+
 Cold start: several starting epipole directions (a hemisphere of `N e`; `e` and `−e` are the same start), each
 refined with ρ* free, and the lowest robust cost wins; `margin` is the relative cost gap to the best *different*
 epipole direction, which the notes measured at 9 % at the paper's start and < 0.1 % near the equilibrium.
@@ -31,7 +39,7 @@ within `config.base.gain_range` (`solver.bounded_gains`), `β ← β + δβ`; th
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -54,6 +62,7 @@ from ddvs_service.registration.reference import CurrentPyramid, Level, PreparedR
 from ddvs_service.registration.solver import (
     LevelOutcome,
     NormalEquations,
+    Outcome,
     Reduced,
     bounded_gains,
     coarse_to_fine,
@@ -71,6 +80,7 @@ START_DIRECTIONS = np.array(
     [[1, 0, 0], [0, 1, 0], [1, 1, 0], [1, -1, 0], [0, 0, 1], [1, 0, 1], [-1, 0, 1], [0, 1, 1], [0, -1, 1]],
     dtype=np.float64,
 )
+FREE_EPIPOLE_FACTOR = 2.0  # hysteresis of the held epipole (module docstring): freed at 2 × hold_epipole_px
 SPLINE_MARGIN = 0.1  # B-spline window margin around the warped ROI, × the ROI's larger side (`spline_window`)
 
 
@@ -87,6 +97,7 @@ class _State:
     cost: float = float("inf")
     information: F64 | None = None  # on ρ*, from the first finest-level evaluation of a tracked frame
     normal: tuple[ParamLayout, F64, F64] | None = None  # the last finest-level step's layout, T and TᵀHT (`reduce`)
+    equations: tuple[F64, F64] | None = None  # the last finest-level step's H and g over its layout (`reduce`)
     scale_cap: float = float("inf")  # the largest σ the weights and the inlier count use (`registration.integrity`)
 
 
@@ -218,11 +229,29 @@ class GeneralRegistration:
                        np.asarray(rho, dtype=np.float64).copy(), gains, float(beta0), scale0,
                        scale_cap=float("inf") if scale_cap is None else float(scale_cap))
         _normalise(state)
-        free_e = bool(np.any(state.c != 0.0))
-        information = free_e and self._observed(state)
-        outcome = coarse_to_fine(levels, lambda level: self._solve(
-            level, pyramid, state, free_e=free_e, free_rho=False, tolerance_px=tolerance_px, information=information,
-            give_up_below=self.config.base.min_inlier_ratio if give_up else None))
+        give_up_below = self.config.base.min_inlier_ratio if give_up else None
+
+        def solve(free_e: bool) -> Outcome:
+            information = free_e and self._observed(state)
+            return coarse_to_fine(levels, lambda level: self._solve(
+                level, pyramid, state, free_e=free_e, free_rho=False, tolerance_px=tolerance_px,
+                information=information, give_up_below=give_up_below))
+
+        parallax = bool(np.any(state.c != 0.0))
+        if not parallax or self._parallax_rms(state.G, state.e, state.c) >= self.config.hold_epipole_px:
+            outcome = solve(parallax)
+        else:  # module docstring, held epipole
+            start = replace(state)
+            state.e = np.zeros(3)
+            held = solve(False)
+            if not held.failed and not self._epipole_seen(state):
+                outcome = held
+            else:  # the frame sees an epipole (`state.e` its step), or the held fit failed: from the start again
+                if held.failed:
+                    state = start
+                outcome = solve(True)
+                outcome = replace(outcome, iterations=[n + (held.iterations[i] if i < len(held.iterations) else 0)
+                                                       for i, n in enumerate(outcome.iterations)])
         if outcome.failed:
             return self._failed(state, outcome.reason, flags_for(outcome.reason), outcome.iterations)
         observed = state.information is not None and self._observed(state)
@@ -350,7 +379,31 @@ class GeneralRegistration:
 
     def _observed(self, state: _State) -> bool:
         """Whether the parallax `ρ* e` of `state` reaches `min_parallax_px` RMS (probe points)."""
-        return _rms(self._parallax_px(state.G, state.e, state.c)) >= self.config.min_parallax_px
+        return self._parallax_rms(state.G, state.e, state.c) >= self.config.min_parallax_px
+
+    def _parallax_rms(self, G: F64, e: F64, c: F64) -> float:
+        """RMS over the probe points of the displacement (px) due to `ρ* e`."""
+        return _rms(self._parallax_px(G, e, c))
+
+    def _epipole_seen(self, state: _State) -> bool:
+        """Whether the last finest-level normal equations of `state` (solved with `e` held at 0) see an epipole: their
+        Gauss-Newton step on `e`, the other unknowns solved with it (Schur complement), moves the probe points by
+        at least `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` RMS; that step is then `state.e`."""
+        if state.equations is None:
+            return False
+        H, g = state.equations
+        layout = self.layouts[False]
+        e, other = layout.indices("e"), layout.indices("G", "S", "beta")
+        try:
+            Heo_Hoo = np.linalg.solve(H[np.ix_(other, other)], H[np.ix_(other, e)]).T
+            step = np.linalg.solve(H[np.ix_(e, e)] - Heo_Hoo @ H[np.ix_(other, e)], Heo_Hoo @ g[other] - g[e])
+        except np.linalg.LinAlgError:
+            return False
+        candidate = self.levels[0].N_inv @ step
+        if self._parallax_rms(state.G, candidate, state.c) < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px:
+            return False
+        state.e = candidate
+        return True
 
     def _parallax_px(self, G: F64, e: F64, c: F64) -> F64:
         """Displacement (px) due to `ρ* e` at the probe points."""
@@ -467,6 +520,7 @@ class _GeneralLevel:
         reduced = T.T @ H @ T
         if self.level.index == 0:
             self.state.normal = (self.layout, T, reduced)
+            self.state.equations = (H, g)
         return Reduced(reduced, T.T @ g, lambda x: T @ x)
 
     def trial(self, delta: F64) -> tuple[_State, float]:

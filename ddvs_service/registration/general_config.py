@@ -23,6 +23,10 @@ InterpolationSetting = Annotated[Interpolation, Field(description=(
     "How the full-resolution steps of the general model sample the current image: bspline (the interpolating cubic "
     "B-spline; coarser levels keep Keys) or keys (Keys' cubic convolution)."))]
 DEFAULT_INTERPOLATION: Interpolation = "bspline"
+HoldEpipoleSetting = Annotated[float, Field(ge=0.0, le=100.0, description=(
+    "Held epipole of the general model: a tracked frame whose warm start's parallax ρ* e is below this RMS (pixels) "
+    "holds e at 0, freed when the frame's step on e reaches twice it; 0: e always free. Near the goal it halves the "
+    "control error's noise on noisy, dimmed frames, and biases it on clean ones (results/robustness)."))]
 
 
 class GeneralConfig(Settings):
@@ -35,6 +39,7 @@ class GeneralConfig(Settings):
     - `min_parallax_snr`: the parallax must also exceed this many standard errors.
     - `min_margin`: relative cost gap to a different parallax solution below which the result is flagged ambiguous.
     - `distinct_epipole_deg`: two solutions whose epipole directions differ by more than this are different.
+    - `hold_epipole_px`: the held epipole (`general` module docstring), 0 = never held.
     - `interpolation`: how the full-resolution steps sample the current image, "bspline" (the interpolating cubic
       B-spline, `kernels.bspline`; coarser levels keep Keys) or "keys" (Keys' cubic convolution). Near the paper's
       equilibrium the warp must be right to ~0.002 px for the control error (16) to be within 1e-4; there Keys' own
@@ -60,3 +65,4 @@ class GeneralConfig(Settings):
     distinct_epipole_deg: float = Field(default=20.0, gt=0.0, le=180.0, description=(
         "Two solutions whose epipole directions differ by more than this (degrees) are different."))
     interpolation: InterpolationSetting = DEFAULT_INTERPOLATION
+    hold_epipole_px: HoldEpipoleSetting = 0.0

@@ -24,7 +24,12 @@ from ddvs_service.control.law import ControlConfig, ControlLaw, LawSettings
 from ddvs_service.protocol.ros_settings import RosSettings
 from ddvs_service.protocol.session import SessionConfig
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.general_config import DEFAULT_INTERPOLATION, GeneralConfig, InterpolationSetting
+from ddvs_service.registration.general_config import (
+    DEFAULT_INTERPOLATION,
+    GeneralConfig,
+    HoldEpipoleSetting,
+    InterpolationSetting,
+)
 from ddvs_service.settings import Settings, narrowed
 
 MAX_IMAGE_SIDE = 16384  # pixels, the widest or tallest camera image accepted
@@ -76,12 +81,13 @@ class CameraSettings(Settings):
 class RegistrationSettings(RegistrationConfig):
     """The registration: every engine setting of `RegistrationConfig` (`levels` … `defocus_px`, the same
     definitions and defaults), the model (planar, `ρ* ≡ 0`, or general, eq. (2): `G`, `e`, `ρ*`, sampled as
-    `GeneralConfig.interpolation`), the template, and the re-acquisition (`registration.reacquisition`: off, or the
-    global initialiser with that hypothesis source)."""
+    `GeneralConfig.interpolation`, `e` held near the goal as `GeneralConfig.hold_epipole_px`), the template, and the
+    re-acquisition (`registration.reacquisition`: off, or the global initialiser with that hypothesis source)."""
 
     model: Literal["planar", "general"] = Field(default="planar", description=(
         "planar: the planar model (ρ* ≡ 0); general: the general model of eq. (2) (G, e, ρ*)."))
     interpolation: InterpolationSetting = DEFAULT_INTERPOLATION
+    hold_epipole_px: HoldEpipoleSetting = 0.0
     roi: tuple[Corner, Corner, Side, Side] | None = Field(default=None, description=(
         "Template [x, y, w, h] in reference pixels; null: `template_size` centred on the control point."))
     template_size: tuple[Side, Side] = Field(default=(200, 150), description=(
@@ -96,8 +102,9 @@ class RegistrationSettings(RegistrationConfig):
         return narrowed(self, RegistrationConfig)
 
     def general_config(self) -> GeneralConfig:
-        """The general engine's settings: `engine_config` as its base, and `interpolation`."""
-        return GeneralConfig(base=self.engine_config(), interpolation=self.interpolation)
+        """The general engine's settings: `engine_config` as its base, `interpolation` and `hold_epipole_px`."""
+        return GeneralConfig(base=self.engine_config(), interpolation=self.interpolation,
+                             hold_epipole_px=self.hold_epipole_px)
 
 
 class ControlSettings(LawSettings):
