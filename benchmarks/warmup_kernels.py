@@ -15,6 +15,7 @@ CPU time includes the imports, `ti.init` and the warm-up's own Python and numpy 
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from collections import defaultdict
@@ -81,14 +82,13 @@ def main() -> None:
     program = ti_core.Program
     program.compile_kernel = _timed_compile(program.compile_kernel)
     program.launch_kernel = _timed_launch(program.launch_kernel)
-    from ddvs.cli import main as ddvs_main
+    from ddvs_service.service import serve_cli
 
-    sys.argv = ["ddvs", "serve", "--config", sys.argv[1], "--warmup-only"]
-    try:
-        ddvs_main()
-    except SystemExit as done:
-        if done.code not in (0, None):
-            raise
+    parser = argparse.ArgumentParser(prog="ddvs serve")
+    serve_cli.add_arguments(parser)
+    code = serve_cli.run(parser.parse_args(["--config", sys.argv[1], "--warmup-only"]))
+    if code:
+        raise SystemExit(f"ddvs serve --warmup-only exited {code}")
     names = sorted(set(FRONT) | set(COMPILE), key=lambda n: -(FRONT[n] + COMPILE[n] + LAUNCH[n]))
     print(f"{'specialisation':28s} {'front end':>9s} {'compile':>8s} {'1st launch':>10s}  (s CPU)")
     for name in names:
