@@ -3,10 +3,11 @@ free-flying camera servoes (decoupled law, the robustness matrix's saddle set-up
 from a start a few millimetres from the goal, or from one of the matrix's starts, with the stop disabled so that the
 camera keeps servoing, and the estimated error ε̄ is compared with the one the same law computes from the ground
 truth. Printed over the servoed images after the first `--skip` (the dimming and the occluder have set in by then):
-the standard deviation of that gap per component (units of ε̄), the integrated autocorrelation time τ of components 0
-and 4 (the tilt that keeps the control point still: the direction the stop rule's scatter is made of), the estimate's
-scatter s as the stop rule computes it, s/√90 (the long window's standard error, against the stop threshold 1e-3) and
-s·√(τ/90) (that standard error with the correlation counted), and the camera's distance from the goal.
+the standard deviation of that gap per component (units of ε̄), the integrated autocorrelation time τ of
+components 0 and 4 (the tilt that keeps the control point still: the direction the stop rule's scatter is made of),
+the estimate's scatter s as the stop rule computes it, s/√N (the long window's standard error, N =
+`control.noise_frames`, against the stop threshold 1e-3) and s·√(τ/N) (that standard error with the correlation
+counted), and the camera's distance from the goal.
 
 `--rho-from START`: the general model's ρ* coefficients are those its first frame estimates from START (as a run from
 START has them), instead of those of the probe's own first frame (near the goal: no parallax to see, ρ* = 0).
@@ -34,7 +35,6 @@ from sim.ground_truth import GroundTruth
 
 NEAR_T = (0.002, -0.001, 0.001)  # m
 NEAR_R_DEG = (0.1, -0.1, 0.05)
-WINDOW = 90  # the stop rule's long window (`control.noise_frames`)
 STOP_NEVER = 1e-9  # a stop threshold no estimate reaches: the camera keeps servoing
 
 
@@ -96,16 +96,17 @@ def main() -> None:
     run = rob.Run("saddle", "ddvs", args.start, args.condition, "budget", 0, np.nan, np.nan, False, 0, 0, 0, "")
     rob.servo(run, plant, pipeline, roi, condition,
               rob.RobustnessSettings(targets=("saddle",), max_images=args.images), observe)
+    window = config.control.noise_frames
     gap, estimate = np.array(gaps[args.skip:]), np.array(estimates[args.skip:])
-    if len(gap) < 2 * WINDOW:
-        raise SystemExit(f"only {len(gap)} servoed images after --skip {args.skip}; expected ≥ {2 * WINDOW}")
+    if len(gap) < 2 * window:
+        raise SystemExit(f"only {len(gap)} servoed images after --skip {args.skip}; expected ≥ {2 * window}")
     s = float(np.sqrt(((estimate - estimate.mean(0)) ** 2).sum(1).mean()))
     tau = max(autocorrelation_time(gap[:, 0]), autocorrelation_time(gap[:, 4]))
     print(f"condition {args.condition}, start {args.start}, ρ* {'from ' + args.rho_from if rho else 'own'} "
           f"{np.round(pipeline.rho_coeffs, 4).tolist()}; {len(gap)} servoed images after {args.skip}")
     print(f"gap std per component {np.array2string(gap.std(0), precision=5)}; τ {tau:.1f} images")
-    print(f"estimate scatter s {s:.2e}, s/√{WINDOW} {s / np.sqrt(WINDOW):.2e}, s·√(τ/{WINDOW}) "
-          f"{s * np.sqrt(tau / WINDOW):.2e}; camera {np.median(run.pose_errors_mm[args.skip:]):.2f} mm from the goal "
+    print(f"estimate scatter s {s:.2e}, s/√{window} {s / np.sqrt(window):.2e}, s·√(τ/{window}) "
+          f"{s * np.sqrt(tau / window):.2e}; camera {np.median(run.pose_errors_mm[args.skip:]):.2f} mm from the goal "
           f"(median)")
 
 

@@ -238,7 +238,8 @@ class GeneralRegistration:
                 information=information, give_up_below=give_up_below))
 
         parallax = bool(np.any(state.c != 0.0))
-        if not parallax or self._parallax_rms(state.G, state.e, state.c) >= self.config.hold_epipole_px:
+        hold_px = self.config.hold_epipole_px
+        if not parallax or hold_px == 0.0 or self._parallax_rms(state.G, state.e, state.c) >= hold_px:
             outcome = solve(parallax)
         else:  # module docstring, held epipole
             start = replace(state)
