@@ -24,8 +24,11 @@ noisy frame can measure, and a free `e` then trades image noise against `G` alon
 point still (results/robustness: twice the control error's noise under JPEG on a dimmed scene). A tracked frame
 whose warm start's parallax is below `hold_epipole_px` RMS holds `e` at 0 (the equilibrium's epipole: the planar fit,
 with the same fixed point, biased by the parallax it ignores) and frees it again, solving that frame once more, when
-the frame's own Gauss-Newton step on `e` (profiled over the other unknowns) would move the probe points by
-`FREE_EPIPOLE_FACTOR` × `hold_epipole_px` or more, or when the held fit fails.
+the frame's own Gauss-Newton step on `e` (profiled over the other unknowns) is significant — its Wald statistic
+`δeᵀ S δe / σ²` (S the Schur complement of the normal equations on `e`, σ the robust scale) reaches
+`FREE_EPIPOLE_WALD` — or would move the probe points by `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` or more, or when the
+held fit fails. The significance test frees `e` on clean frames down to a few thousandths of a pixel of parallax,
+where holding it would bias the control error (16), and keeps it held where the frame's noise hides the parallax.
 
 Cold start: several starting epipole directions (a hemisphere of `N e`; `e` and `−e` are the same start), each
 refined with ρ* free, and the lowest robust cost wins; `margin` is the relative cost gap to the best *different*
@@ -81,6 +84,7 @@ START_DIRECTIONS = np.array(
     dtype=np.float64,
 )
 FREE_EPIPOLE_FACTOR = 2.0  # hysteresis of the held epipole (module docstring): freed at 2 × hold_epipole_px
+FREE_EPIPOLE_WALD = 100.0  # a held frame's step on e this significant frees e (module docstring; χ²₃ is 16 at 1e-3)
 SPLINE_MARGIN = 0.1  # B-spline window margin around the warped ROI, × the ROI's larger side (`spline_window`)
 
 
@@ -388,8 +392,9 @@ class GeneralRegistration:
 
     def _epipole_seen(self, state: _State) -> bool:
         """Whether the last finest-level normal equations of `state` (solved with `e` held at 0) see an epipole: their
-        Gauss-Newton step on `e`, the other unknowns solved with it (Schur complement), moves the probe points by
-        at least `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` RMS; that step is then `state.e`."""
+        Gauss-Newton step on `e`, the other unknowns solved with it (Schur complement S), is significant
+        (`δeᵀ S δe / σ²` ≥ `FREE_EPIPOLE_WALD`, σ the robust scale) or moves the probe points by at least
+        `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` RMS; that step is then `state.e`."""
         if state.equations is None:
             return False
         H, g = state.equations
@@ -397,11 +402,14 @@ class GeneralRegistration:
         e, other = layout.indices("e"), layout.indices("G", "S", "beta")
         try:
             Heo_Hoo = np.linalg.solve(H[np.ix_(other, other)], H[np.ix_(other, e)]).T
-            step = np.linalg.solve(H[np.ix_(e, e)] - Heo_Hoo @ H[np.ix_(other, e)], Heo_Hoo @ g[other] - g[e])
+            schur = H[np.ix_(e, e)] - Heo_Hoo @ H[np.ix_(other, e)]
+            step = np.linalg.solve(schur, Heo_Hoo @ g[other] - g[e])
         except np.linalg.LinAlgError:
             return False
         candidate = self.levels[0].N_inv @ step
-        if self._parallax_rms(state.G, candidate, state.c) < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px:
+        significant = state.scale is not None and float(step @ schur @ step) >= FREE_EPIPOLE_WALD * state.scale**2
+        if not significant and (self._parallax_rms(state.G, candidate, state.c)
+                                < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px):
             return False
         state.e = candidate
         return True

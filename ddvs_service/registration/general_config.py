@@ -25,8 +25,9 @@ InterpolationSetting = Annotated[Interpolation, Field(description=(
 DEFAULT_INTERPOLATION: Interpolation = "bspline"
 HoldEpipoleSetting = Annotated[float, Field(ge=0.0, le=100.0, description=(
     "Held epipole of the general model: a tracked frame whose warm start's parallax ρ* e is below this RMS (pixels) "
-    "holds e at 0, freed when the frame's step on e reaches twice it; 0: e always free. Near the goal it halves the "
-    "control error's noise on noisy, dimmed frames, and biases it on clean ones (results/robustness)."))]
+    "holds e at 0, freed when the frame's step on e is significant against the frame's noise or reaches twice it; "
+    "0: e always free. Near the goal it halves the control error's noise on noisy, dimmed frames "
+    "(results/robustness)."))]
 
 
 class GeneralConfig(Settings):
@@ -65,4 +66,4 @@ class GeneralConfig(Settings):
     distinct_epipole_deg: float = Field(default=20.0, gt=0.0, le=180.0, description=(
         "Two solutions whose epipole directions differ by more than this (degrees) are different."))
     interpolation: InterpolationSetting = DEFAULT_INTERPOLATION
-    hold_epipole_px: HoldEpipoleSetting = 0.0
+    hold_epipole_px: HoldEpipoleSetting = 0.05

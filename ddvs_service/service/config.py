@@ -87,7 +87,7 @@ class RegistrationSettings(RegistrationConfig):
     model: Literal["planar", "general"] = Field(default="planar", description=(
         "planar: the planar model (ρ* ≡ 0); general: the general model of eq. (2) (G, e, ρ*)."))
     interpolation: InterpolationSetting = DEFAULT_INTERPOLATION
-    hold_epipole_px: HoldEpipoleSetting = 0.0
+    hold_epipole_px: HoldEpipoleSetting = 0.05
     roi: tuple[Corner, Corner, Side, Side] | None = Field(default=None, description=(
         "Template [x, y, w, h] in reference pixels; null: `template_size` centred on the control point."))
     template_size: tuple[Side, Side] = Field(default=(200, 150), description=(
