@@ -17,7 +17,12 @@ from ddvs.cli import main
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, so3_exp
 from ddvs_service.registration.config import RegistrationConfig
-from ddvs_service.registration.general import GeneralRegistration
+from ddvs_service.registration.general import (
+    EPIPOLE_EVIDENCE_FRAMES,
+    FREE_EPIPOLE_MEAN_WALD,
+    FREE_EPIPOLE_WALD,
+    GeneralRegistration,
+)
 from ddvs_service.registration.general_basis import ParallaxBasis, coefficient_count
 from ddvs_service.registration.general_config import FLAG_NO_PARALLAX, FLAG_OCCLUSION, GeneralConfig
 from ddvs_service.registration.general_register import register_general
@@ -339,3 +344,33 @@ def test_held_epipole_near_the_goal_and_freed_away_from_it() -> None:
         if not expect_held:
             assert warp_rms(result, saddle, T) < 0.1
             assert warp_rms(always_free, saddle, T) < 0.1
+
+
+@pytest.mark.slow
+def test_an_epipole_every_frame_sees_is_freed_by_the_tracker() -> None:
+    """`GeneralTracker` and the held epipole: a clean frame 1.2 mm from the reference pose whose parallax is too faint
+    to free `e` on one frame (its statistic between `FREE_EPIPOLE_MEAN_WALD` and `FREE_EPIPOLE_WALD`), seen again
+    frame after frame, frees it once `EPIPOLE_EVIDENCE_FRAMES` frames agree; the same frame under fresh noise (10 grey
+    levels) each time keeps it held."""
+    saddle = paper_saddle()
+    reference = render(saddle, np.eye(4))
+    T_far = pose(so3_exp([-0.05, -0.15, 0.5]), [0.08, -0.05, 0.0])
+    rho = register_general(reference, render(saddle, T_far), ROI,
+                           G0=ground_truth(saddle, INTR, np.eye(4), T_far).G).rho_coeffs
+    T = pose(so3_exp([0.0006, -0.0006, 0.0003]), [0.0012, -0.0006, 0.0006])
+    G0 = ground_truth(saddle, INTR, np.eye(4), T).G
+    engine = GeneralRegistration.prepare(reference, ROI, config=MEASURED.replaced(hold_epipole_px=0.05))
+    clean = render(saddle, T)
+    rng = np.random.default_rng(0)
+    for noisy in (False, True):
+        tracker = GeneralTracker(engine, rho=rho, G=G0)
+        results = [tracker.track(clean + (rng.normal(0.0, 10.0, clean.shape).astype(np.float32) if noisy else 0.0))
+                   for _ in range(EPIPOLE_EVIDENCE_FRAMES + 2)]
+        assert all(r.converged for r in results), [r.reason for r in results]
+        held = [bool(np.all(r.e == 0.0)) for r in results]
+        if noisy:
+            assert all(held), [r.epipole_wald for r in results]
+        else:
+            assert all(FREE_EPIPOLE_MEAN_WALD <= r.epipole_wald < FREE_EPIPOLE_WALD for r in results[:-2])
+            assert held == [True] * EPIPOLE_EVIDENCE_FRAMES + [False] * 2, [r.epipole_wald for r in results]
+            assert warp_rms(results[-1], saddle, T) <= warp_rms(results[0], saddle, T)

@@ -24,11 +24,15 @@ noisy frame can measure, and a free `e` then trades image noise against `G` alon
 point still (results/robustness: twice the control error's noise under JPEG on a dimmed scene). A tracked frame
 whose warm start's parallax is below `hold_epipole_px` RMS holds `e` at 0 (the equilibrium's epipole: the planar fit,
 with the same fixed point, biased by the parallax it ignores) and frees it again, solving that frame once more, when
-the frame's own Gauss-Newton step on `e` (profiled over the other unknowns) is significant — its Wald statistic
-`δeᵀ S δe / σ²` (S the Schur complement of the normal equations on `e`, σ the robust scale) reaches
-`FREE_EPIPOLE_WALD` — or would move the probe points by `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` or more, or when the
-held fit fails. The significance test frees `e` on clean frames down to a few thousandths of a pixel of parallax,
-where holding it would bias the control error (16), and keeps it held where the frame's noise hides the parallax.
+the frame's own Gauss-Newton step on `e` (profiled over the other unknowns) is significant or would move the probe
+points by `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` or more, or when the held fit fails. Significance: the statistic
+`êᵀ S ê / σ²` of `e` = 0 (S the Schur complement of the finest normal equations on `e`, σ the robust scale, `ê`
+the held frame's step on `e` or a free frame's estimate, in the level's normalised coordinates; χ²₃ on independent
+noise), `GeneralResult.epipole_wald`, reaching `FREE_EPIPOLE_WALD` on the frame, or `FREE_EPIPOLE_MEAN_WALD` on
+average over a tracker's last `EPIPOLE_EVIDENCE_FRAMES` frames (`GeneralTracker`; then `e` starts free): a parallax
+that every frame sees, however faintly, is not noise, which changes from frame to frame. So `e` stays free on clean
+frames down to a few thousandths of a pixel of parallax, where holding it would bias the control error (16), and
+is held where the frames' noise hides the parallax.
 
 Cold start: several starting epipole directions (a hemisphere of `N e`; `e` and `−e` are the same start), each
 refined with ρ* free, and the lowest robust cost wins; `margin` is the relative cost gap to the best *different*
@@ -84,7 +88,9 @@ START_DIRECTIONS = np.array(
     dtype=np.float64,
 )
 FREE_EPIPOLE_FACTOR = 2.0  # hysteresis of the held epipole (module docstring): freed at 2 × hold_epipole_px
-FREE_EPIPOLE_WALD = 100.0  # a held frame's step on e this significant frees e (module docstring; χ²₃ is 16 at 1e-3)
+FREE_EPIPOLE_WALD = 100.0  # e ≠ 0 this significant on one frame frees e (module docstring; χ²₃ is 16 at 1e-3)
+FREE_EPIPOLE_MEAN_WALD = 25.0  # ... or on average over the tracker's last EPIPOLE_EVIDENCE_FRAMES frames
+EPIPOLE_EVIDENCE_FRAMES = 10
 SPLINE_MARGIN = 0.1  # B-spline window margin around the warped ROI, × the ROI's larger side (`spline_window`)
 
 
@@ -212,7 +218,7 @@ class GeneralRegistration:
     def track(
         self, current: F32, G0: F64, e0: F64, rho: F64, gains0: ArrayLike | float = 1.0, beta0: float = 0.0,
         scale0: float | None = None, first_level: int | None = None, tolerance_px: float | None = None,
-        scale_cap: float | None = None, give_up: bool = False,
+        scale_cap: float | None = None, give_up: bool = False, may_hold_epipole: bool = True,
     ) -> GeneralResult:
         """Register `current` with ρ* = `rho` (coefficients) fixed, from `G0`, `e0`, gains and bias; `e` stays 0
         when ρ* is 0 (planar). The result carries the information on ρ* (`_rho_information`) of the first
@@ -225,7 +231,8 @@ class GeneralRegistration:
         tracker passes `tracking_step_tolerance_px`). `scale_cap`: the largest robust scale used, and `give_up`: a
         tracker's attempt, which ends early on a hopeless frame (`solver.gauss_newton`, below
         `config.base.min_inlier_ratio`), as
-        `PlanarRegistration.run`."""
+        `PlanarRegistration.run`. `may_hold_epipole` False: `e` is free whatever the parallax (module docstring, held
+        epipole: the tracker's last frames found it significant)."""
         levels = self.levels if first_level is None else self.levels[: max(0, first_level) + 1]
         pyramid = self._load_current(current, len(levels))
         gains = np.broadcast_to(np.asarray(gains0, dtype=np.float64), self.grid).astype(np.float64).copy()
@@ -243,13 +250,16 @@ class GeneralRegistration:
 
         parallax = bool(np.any(state.c != 0.0))
         hold_px = self.config.hold_epipole_px
-        if not parallax or hold_px == 0.0 or self._parallax_rms(state.G, state.e, state.c) >= hold_px:
+        held_e = (parallax and may_hold_epipole and hold_px > 0.0
+                  and self._parallax_rms(state.G, state.e, state.c) < hold_px)
+        if not held_e:
             outcome = solve(parallax)
         else:  # module docstring, held epipole
             start = replace(state)
             state.e = np.zeros(3)
             held = solve(False)
-            if not held.failed and not self._epipole_seen(state):
+            held_e = not held.failed and not self._epipole_seen(state)
+            if held_e:
                 outcome = held
             else:  # the frame sees an epipole (`state.e` its step), or the held fit failed: from the start again
                 if held.failed:
@@ -261,7 +271,10 @@ class GeneralRegistration:
             return self._failed(state, outcome.reason, flags_for(outcome.reason), outcome.iterations)
         observed = state.information is not None and self._observed(state)
         info = state.information if observed and state.information is not None else np.zeros((self.basis.size,) * 2)
-        return self._result(state, outcome.iterations, outcome.converged, outcome.reason, info)
+        result = self._result(state, outcome.iterations, outcome.converged, outcome.reason, info)
+        if parallax:
+            result.epipole_wald = self._epipole_statistic(state, held_e)[0]
+        return result
 
     # --------------------------------------------------------------------------------------------- internals
 
@@ -391,28 +404,34 @@ class GeneralRegistration:
         return _rms(self._parallax_px(G, e, c))
 
     def _epipole_seen(self, state: _State) -> bool:
-        """Whether the last finest-level normal equations of `state` (solved with `e` held at 0) see an epipole: their
-        Gauss-Newton step on `e`, the other unknowns solved with it (Schur complement S), is significant
-        (`δeᵀ S δe / σ²` ≥ `FREE_EPIPOLE_WALD`, σ the robust scale) or moves the probe points by at least
-        `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` RMS; that step is then `state.e`."""
-        if state.equations is None:
+        """Whether `state`, solved with `e` held at 0, sees an epipole: its step on `e` (`_epipole_statistic`) is
+        significant (`FREE_EPIPOLE_WALD`) or moves the probe points by at least `FREE_EPIPOLE_FACTOR` ×
+        `hold_epipole_px` RMS; that step is then `state.e`."""
+        wald, candidate = self._epipole_statistic(state, held=True)
+        if wald < FREE_EPIPOLE_WALD and (self._parallax_rms(state.G, candidate, state.c)
+                                         < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px):
             return False
+        state.e = candidate
+        return True
+
+    def _epipole_statistic(self, state: _State, held: bool) -> tuple[float, F64]:
+        """The significance `êᵀ S ê / σ²` of `e` ≠ 0 in `state` (module docstring, held epipole) from its last
+        finest-level normal equations (S: their Schur complement on `e`, the other unknowns solved with it), and `ê`
+        as a full-resolution epipole. `held`: `ê` is the Gauss-Newton step on `e` from 0 (the score of a frame solved
+        with `e` held), else the estimate `state.e` (a free frame's). (nan, 0) without those equations or scale."""
+        nothing = (float("nan"), np.zeros(3))
+        if state.equations is None or state.scale is None:
+            return nothing
         H, g = state.equations
-        layout = self.layouts[False]
+        layout, level = self.layouts[False], self.levels[0]
         e, other = layout.indices("e"), layout.indices("G", "S", "beta")
         try:
             Heo_Hoo = np.linalg.solve(H[np.ix_(other, other)], H[np.ix_(other, e)]).T
             schur = H[np.ix_(e, e)] - Heo_Hoo @ H[np.ix_(other, e)]
-            step = np.linalg.solve(schur, Heo_Hoo @ g[other] - g[e])
+            e_hat = np.linalg.solve(schur, Heo_Hoo @ g[other] - g[e]) if held else level.N @ level.D @ state.e
         except np.linalg.LinAlgError:
-            return False
-        candidate = self.levels[0].N_inv @ step
-        significant = state.scale is not None and float(step @ schur @ step) >= FREE_EPIPOLE_WALD * state.scale**2
-        if not significant and (self._parallax_rms(state.G, candidate, state.c)
-                                < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px):
-            return False
-        state.e = candidate
-        return True
+            return nothing
+        return float(e_hat @ schur @ e_hat) / state.scale**2, level.D_inv @ level.N_inv @ e_hat
 
     def _parallax_px(self, G: F64, e: F64, c: F64) -> F64:
         """Displacement (px) due to `ρ* e` at the probe points."""

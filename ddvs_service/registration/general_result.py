@@ -24,7 +24,9 @@ class GeneralResult(RegistrationResult):
     - `rho_coeffs`: ρ* coefficients in `basis` (gauge of the module docstring); `rho_at(p)` evaluates ρ*.
     - `rho_information`: Fisher information of `rho_coeffs` given `e` (accumulated over the frames by the tracker),
       `(JᵀWJ)/σ²` with the other unknowns marginalised; `parallax_px`: RMS over the ROI of the displacement due to
-      `ρ* e` in this frame; `margin`: relative cost gap to the best different parallax field (estimation frames).
+      `ρ* e` in this frame; `margin`: relative cost gap to the best different parallax field (estimation frames);
+      `epipole_wald`: how significant the frame finds `e` ≠ 0 (`general` module docstring, held epipole; nan when
+      not evaluated: no parallax field, a failed frame).
     - `flags` (`FLAG_*`): what went wrong with `converged` and `reason`, never silent.
     """
 
@@ -34,6 +36,7 @@ class GeneralResult(RegistrationResult):
     rho_information: F64
     parallax_px: float = 0.0
     margin: float = float("nan")
+    epipole_wald: float = float("nan")
     flags: list[str] = field(default_factory=list)
 
     def rho_at(self, p: ArrayLike) -> float:

@@ -17,7 +17,8 @@ global initialiser, the last good estimate) is the session's decision, not this 
   `config.base.tracking_step_tolerance_px`, and both attempts give up early on a hopeless frame (as the planar
   `Tracker`: the frame that discovers a loss costs about twice `tracking_give_up_iterations`).
   The information on ρ* (given `e`) of each converged frame is added to `rho_information`; it grows only while
-  the camera translates.
+  the camera translates. Near the equilibrium a frame may hold `e` at 0 (`general` module docstring, held
+  epipole) unless the last `EPIPOLE_EVIDENCE_FRAMES` converged frames found it significant on average.
 - Integrity (`registration.integrity`, as the planar `Tracker`): the robust scale of the warm-started frames is
   capped at a multiple of the last good frames' and a converged fit whose own scale or whose corners jumped
   implausibly counts as not converged.
@@ -27,11 +28,13 @@ global initialiser, the last good estimate) is the session's decision, not this 
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ddvs_service.lie import sl3_normalize
-from ddvs_service.registration.general import GeneralRegistration
+from ddvs_service.registration.general import EPIPOLE_EVIDENCE_FRAMES, FREE_EPIPOLE_MEAN_WALD, GeneralRegistration
 from ddvs_service.registration.general_basis import ParallaxBasis
 from ddvs_service.registration.general_config import FLAG_DIVERGED, GeneralConfig
 from ddvs_service.registration.general_result import GeneralResult
@@ -106,6 +109,7 @@ class GeneralTracker:
         self._beta = 0.0
         self._scale: float | None = None
         self._fresh = True  # the next frame starts from `reset`'s `G`
+        self._epipole_wald: deque[float] = deque(maxlen=EPIPOLE_EVIDENCE_FRAMES)  # of the last converged frames
 
     def track(self, current: ArrayLike) -> GeneralResult:
         """Register `current` (module docstring); on failure keep the state and report why."""
@@ -128,6 +132,8 @@ class GeneralTracker:
         self._scale = max(result.scale, self._integrity.config.min_anchor) if np.isfinite(result.scale) else None
         self._information = self._information + result.rho_information
         result.rho_information = self._information.copy()
+        if np.isfinite(result.epipole_wald):
+            self._epipole_wald.append(result.epipole_wald)
         return result
 
     def residual(self, current: ArrayLike) -> NDArray[np.float32]:
@@ -153,13 +159,15 @@ class GeneralTracker:
         base = problem.config.base
         tolerance = base.tracking_step_tolerance_px
         cap = self._integrity.scale_cap
+        evidence = self._epipole_wald
+        may_hold = len(evidence) < EPIPOLE_EVIDENCE_FRAMES or float(np.mean(evidence)) < FREE_EPIPOLE_MEAN_WALD
         result = problem.track(current, G0, e0, self._rho, *photometric, first_level=base.tracking_levels - 1,
-                               tolerance_px=tolerance, scale_cap=cap, give_up=True)
+                               tolerance_px=tolerance, scale_cap=cap, give_up=True, may_hold_epipole=may_hold)
         if not result.converged and (G0 is not self._G or len(result.iterations) < len(problem.levels)):
             # under the last frames' capped σ (re-estimated, as the planar retry's, a hard combination's retries
             # under an occluder gave up at the coarsest level: LOST frames on the saddle)
             result = problem.track(current, self._G, self._e, self._rho, *photometric, tolerance_px=tolerance,
-                                   scale_cap=cap, give_up=True)
+                                   scale_cap=cap, give_up=True, may_hold_epipole=may_hold)
         implausible = self._integrity.judge(G0, result.G, result.scale) if result.converged else ""
         if implausible:
             result.converged, result.reason = False, implausible
