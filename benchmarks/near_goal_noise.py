@@ -35,7 +35,6 @@ from sim.ground_truth import GroundTruth
 
 NEAR_T = (0.002, -0.001, 0.001)  # m
 NEAR_R_DEG = (0.1, -0.1, 0.05)
-STOP_NEVER = 1e-9  # a stop threshold no estimate reaches: the camera keeps servoing
 
 
 def autocorrelation_time(x: NDArray[np.float64], cutoff: float = 0.05) -> float:
@@ -73,7 +72,7 @@ def main() -> None:
     target = rob.make_target("saddle")
     condition = rob.CONDITIONS[args.condition]
     told = rob.told_intrinsics(target.camera, condition)
-    config = rob.service_config(target, told, {"control": {"law": "ddvs", "stop_threshold": STOP_NEVER},
+    config = rob.service_config(target, told, {"control": {"law": "ddvs", "stop_threshold": 0.0},
                                                **json.loads(args.overrides)})
     reference = np.clip(np.rint(rob.render_camera(target.surface, rob._texture(), target.camera, np.eye(4),
                                                   oversample=rob.OVERSAMPLE)), 0, 255).astype(np.uint8)

@@ -7,7 +7,10 @@ import os
 import numpy as np
 import pytest
 
+from ddvs_service.camera import Intrinsics
+from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.persistence import StateStore, atomic_write_bytes
+from ddvs_service.service.pipeline import ServoPipeline
 from ddvs_service.service.state import FrameOutcome, ServoState, StateMachine, TransitionError
 
 
@@ -58,8 +61,21 @@ def test_a_resumed_servo_holds_still_until_its_first_frames_confirm_the_estimate
 
 
 def test_thresholds_validated() -> None:
-    with pytest.raises(ValueError, match="stop_threshold < resume_threshold"):
-        StateMachine(stop_threshold=1e-2, resume_threshold=1e-3)
+    for stop in (1e-2, -1e-3, float("nan")):
+        with pytest.raises(ValueError, match="stop_threshold < resume_threshold"):
+            StateMachine(stop_threshold=stop, resume_threshold=1e-3)
+
+
+def test_a_zero_stop_threshold_never_converges() -> None:
+    """`control.stop_threshold` 0 ("never", as the setting documents): the servo keeps following the reference, even
+    on a zero error whose long window holds."""
+    sm = ServoPipeline(ServiceConfig.model_validate({"control": {"stop_threshold": 0.0}}),
+                       Intrinsics(420.0, 420.0, 159.5, 119.5, 320, 240), background_reacquisition=False).machine
+    assert (sm.stop_threshold, sm.resume_threshold, sm.scatter_threshold) == (0.0, 0.0, 0.0)
+    sm.reference_set()
+    sm.start()
+    for _ in range(5):
+        assert sm.on_frame(FrameOutcome(True, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)) == ServoState.SERVOING and sm.moves
 
 
 def test_store_round_trip(tmp_path) -> None:

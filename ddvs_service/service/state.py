@@ -51,7 +51,8 @@ class FrameOutcome:
 class StateMachine:
     """Servo state with the transitions driven by commands and by frame outcomes.
 
-    `stop_threshold` is the error norm below which the servo is CONVERGED, once it stayed below for
+    `stop_threshold` (0: never; the servo keeps following the reference) is the error norm below which the servo is
+    CONVERGED, once it stayed below for
     `converge_frames` consecutive frames (one noisy dip does not stop the arm) with the estimate's `scatter` below
     `scatter_threshold` on each (a mean below the threshold is no evidence of the pose when the estimates it averages
     scatter by more than the threshold: the confident wrong answer of a biased fit) — or, for an estimate that image
@@ -76,11 +77,10 @@ class StateMachine:
     _noisy_stop: bool = False  # CONVERGED on the long window's clause
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.stop_threshold < self.resume_threshold:
-            raise ValueError(
-                f"need 0 < stop_threshold < resume_threshold, got {self.stop_threshold} and {self.resume_threshold}"
-            )
-        if not self.scatter_threshold > 0.0:
+        if not (self.stop_threshold == 0.0 or 0.0 < self.stop_threshold < self.resume_threshold):
+            raise ValueError(f"need stop_threshold 0 (never CONVERGED) or 0 < stop_threshold < resume_threshold, got "
+                             f"{self.stop_threshold} and {self.resume_threshold}")
+        if not (self.scatter_threshold > 0.0 or self.stop_threshold == 0.0):
             raise ValueError(f"scatter_threshold must be > 0, got {self.scatter_threshold}")
         if not self.max_noise_ratio > 0.0:
             raise ValueError(f"max_noise_ratio must be > 0, got {self.max_noise_ratio}")
