@@ -295,18 +295,21 @@ def test_register_general_refuses_bad_input() -> None:
         GeneralRegistration.prepare(image, (500, 400, 200, 150))
 
 
-@pytest.mark.parametrize("trial", [5, 6, 9])
-def test_first_frame_of_a_large_saddle_view_registers(trial: int) -> None:
+@pytest.mark.parametrize(("seed", "size", "trial"), [(0, 4.0, 5), (0, 4.0, 6), (0, 4.0, 9), (1, 5.0, 4)])
+def test_first_frame_of_a_large_saddle_view_registers(seed: int, size: float, trial: int) -> None:
     """The domain sweep's 0.2 m / 60° starts with the whole ROI patch in view: the best homography leaves a
     parallax residual that keeps the planar stage's finest level from converging, yet it brings the general stage
-    into its basin — the first frame registers, at the true warp (it used to fail: "planar stage failed")."""
+    into its basin — the first frame registers, at the true warp (it used to fail: "planar stage failed"). Seed 1's
+    0.25 m / 75° trial 4: the general stage's finest level converges slowly (a step about a fifth smaller each
+    iteration) and ends `max_iterations` with about 1e-3 px still to come: converged, slowly (it used to fail, or
+    not, with the float rounding of the kernels' sums)."""
     from ddvs_service.service.config import RegistrationSettings
     from orchestration.experiment_domain import ROI as DOMAIN_ROI
     from orchestration.experiment_domain import DomainSettings, make_surface, trial_start
 
     assert DOMAIN_ROI == ROI
     saddle = make_surface("saddle")
-    T, _, _ = trial_start(DomainSettings(), 4.0, trial)
+    T, _, _ = trial_start(DomainSettings(seed=seed), size, trial)
     engine = GeneralRegistration.prepare(render(saddle, np.eye(4)), ROI,
                                          config=RegistrationSettings(levels=3).general_config())
     current = render(saddle, T)

@@ -36,7 +36,10 @@ is held where the frames' noise hides the parallax.
 
 Cold start: several starting epipole directions (a hemisphere of `N e`; `e` and `−e` are the same start), each
 refined with ρ* free, and the lowest robust cost wins; `margin` is the relative cost gap to the best *different*
-epipole direction, which the notes measured at 9 % at the paper's start and < 0.1 % near the equilibrium.
+epipole direction, which the notes measured at 9 % at the paper's start and < 0.1 % near the equilibrium. With ρ*
+and `e` free the finest level can converge slowly (linearly, a step a fifth smaller each iteration); a start still
+moving by less than `tracking_step_tolerance_px` after `max_iterations` has converged (`solver.gauss_newton`'s slow
+verdict): the frames that follow are tracked to that tolerance.
 
 Update at pyramid level l (level pixels, `D_l` of `images`): `G_l ← M G_l`, `e_l ← M e_l + N⁻¹ δe'`,
 `M = N⁻¹ exp(Σ xᵢ Aᵢ) N` (left increment, Jacobian from `kernels.general_step`), `c ← c + δc`, `S ← S + δS`
@@ -193,7 +196,8 @@ class GeneralRegistration:
 
             def solve(level: Level, state: _State = state) -> LevelOutcome:
                 return in_sequence(lambda: self._solve(level, pyramid, state, free_e=False, free_rho=True),
-                                   lambda: self._solve(level, pyramid, state, free_e=True, free_rho=True))
+                                   lambda: self._solve(level, pyramid, state, free_e=True, free_rho=True,
+                                                       slow_tolerance_px=self.config.base.tracking_step_tolerance_px))
 
             outcome = coarse_to_fine(levels, solve)
             if not outcome.failed:
@@ -343,18 +347,21 @@ class GeneralRegistration:
     def _solve(
         self, level: Level, pyramid: list[F32], state: _State, free_e: bool, free_rho: bool,
         tolerance_px: float | None = None, information: bool = False,
-        give_up_below: float | None = None,
+        give_up_below: float | None = None, slow_tolerance_px: float | None = None,
     ) -> LevelOutcome:
         """Gauss-Newton (`solver.gauss_newton`) at one level. Converged: the probe points' motion still to come is
         below `tolerance_px` (full resolution; `step_tolerance_px` by default) at the finest level, below
         `coarse_step_tolerance_px` (level pixels) on a coarser one (they only feed the next level). `information`
         (ρ* fixed): the first finest-level launch also carries the ρ* columns; their information goes to
-        `state.information`, and they are dropped from that step. `give_up_below`: as `solver.gauss_newton`'s."""
+        `state.information`, and they are dropped from that step. `give_up_below`: as `solver.gauss_newton`'s.
+        `slow_tolerance_px`: at the finest level, `solver.gauss_newton`'s `slow_tolerance` (full resolution)."""
         cfg = self.config.base
         fine = cfg.step_tolerance_px if tolerance_px is None else tolerance_px
         tolerance = fine if level.index == 0 else cfg.coarse_step_tolerance_px
+        slow = slow_tolerance_px if level.index == 0 else None
         model = _GeneralLevel(self, level, pyramid[level.index], state, free_e, free_rho, information)
-        return gauss_newton(model, state, cfg, level.index, level.n_pixels, level.size, tolerance, give_up_below)
+        return gauss_newton(model, state, cfg, level.index, level.n_pixels, level.size, tolerance, give_up_below,
+                            slow)
 
     def _apply(self, state: _State, delta: F64, level: Level, layout: ParamLayout) -> _State:
         """The state after the update `delta` (in `layout`; module docstring), normalised to det G = 1."""

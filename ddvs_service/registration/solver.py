@@ -13,7 +13,9 @@ by a step. Each iteration (eq. (5), robust ESM):
 4. the step `δ = −H⁻¹ g`, scaled down when it moves the model's probe points by more than `max_step_fraction` of
    the ROI size; the gain nodes' part of it projected onto `config.gain_range` by the engine's update
    (`bounded_gains`: a physical camera's gain is positive);
-5. converged when the motion still to come (`remaining_motion` of the steps so far) is below the tolerance.
+5. converged when the motion still to come (`remaining_motion` of the steps so far) is below the tolerance; after
+   `max_iterations`, also when it is below an optional `slow_tolerance` (a slowly converging level whose estimate is
+   already as close as a tracked frame's needs to be).
 """
 
 from __future__ import annotations
@@ -135,7 +137,7 @@ class Outcome:
 
 def gauss_newton(
     model: LevelModel[C], fit: Fit, config: RegistrationConfig, level_index: int, n_pixels: int, size: float,
-    tolerance: float, give_up_below: float | None = None,
+    tolerance: float, give_up_below: float | None = None, slow_tolerance: float | None = None,
 ) -> LevelOutcome:
     """Iterate at one level (module docstring) until the motion still to come is below `tolerance` (level pixels),
     at most `config.max_iterations` times. `n_pixels`: the level's ROI pixels; `size`: the ROI's larger side.
@@ -144,7 +146,9 @@ def gauss_newton(
     needs): after `config.tracking_give_up_iterations` iterations without converging, the level has failed, which
     ends the coarse-to-fine solve, unless it is the finest and its inlier ratio is at least `give_up_below`. A frame
     within reach converges at a coarse level in a few iterations, and a slow one at the finest level (noise) keeps
-    its support; on a lost frame (the target hidden or out of reach) every level would run `max_iterations`."""
+    its support; on a lost frame (the target hidden or out of reach) every level would run `max_iterations`.
+    `slow_tolerance` (level pixels, above `tolerance`): after `max_iterations`, a level with less motion than this
+    still to come has converged, slowly (the verdict's reason says so)."""
     limit = config.max_step_fraction * size
     steps: list[float] = []
     for it in range(1, config.max_iterations + 1):
@@ -183,6 +187,11 @@ def gauss_newton(
                 level_index > 0 or fit.inlier_ratio < give_up_below):
             why = "a coarse level" if level_index > 0 else f"inlier ratio {fit.inlier_ratio:.3f} < {give_up_below:g}"
             return LevelOutcome(it, False, f"given up at level {level_index} after {it} iterations ({why})", True)
+    remaining = remaining_motion(steps)
+    if slow_tolerance is not None and remaining < slow_tolerance:
+        return LevelOutcome(config.max_iterations, True, (
+            f"converged slowly: max_iterations ({config.max_iterations}) reached at level {level_index} with at most "
+            f"{remaining:.1e} px left < {slow_tolerance:g} px"), False)
     return LevelOutcome(config.max_iterations, False,
                         f"max_iterations ({config.max_iterations}) reached at level {level_index}", False)
 
