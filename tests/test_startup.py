@@ -53,6 +53,37 @@ def test_warmup_only_fills_the_offline_cache_that_the_next_process_hits(tmp_path
     assert cached_kernels(cache) == kernels
 
 
+WHOLE_WARM_UP = """
+import sys
+from ddvs_service.service.fleet_config import FleetConfig, read_file
+from ddvs_service.service.startup import warm_up_configured
+from kernels.backend import finish, init
+init()
+warm_up_configured(FleetConfig(*read_file(sys.argv[1])))  # one process, the general model's whole frame path
+finish()
+"""
+
+
+@pytest.mark.slow
+def test_a_general_warmup_split_over_two_processes_leaves_no_kernel_to_compile(tmp_path: Path) -> None:
+    """`--warmup-only` compiles a general configuration's engine step kernels in a helper process and the rest as
+    the planar model here: together every kernel that the general model's whole warm-up (global initialiser, first
+    frame, tracking) launches, which a later process then loads without compiling or writing any."""
+    cache = tmp_path / "ticache"
+    config = tmp_path / "serve.json"
+    config.write_text(json.dumps({"robot": "g0", "state_dir": str(tmp_path / "state"), "registration": {
+        "model": "general", "template_size": [40, 30], "gain_grid": [1, 1], "global_init": True}}))
+    first = serve(config, cache, "--warmup-only")
+    assert first.returncode == 0, first.stderr
+    kernels = cached_kernels(cache)
+    assert len(kernels) >= 3, kernels  # at least the two general step kernels and the planar one
+    env = {**os.environ, "TI_OFFLINE_CACHE_FILE_PATH": str(cache)}
+    whole = subprocess.run([sys.executable, "-c", WHOLE_WARM_UP, str(config)], env=env, cwd=ROOT,
+                           capture_output=True, text=True, timeout=600)
+    assert whole.returncode == 0, whole.stderr
+    assert cached_kernels(cache) == kernels
+
+
 def test_warmup_only_refuses_no_warmup(tmp_path: Path) -> None:
     config = tmp_path / "serve.json"
     config.write_text(json.dumps({"robot": "w0", "state_dir": str(tmp_path / "state")}))

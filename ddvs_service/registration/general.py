@@ -255,7 +255,7 @@ class GeneralRegistration:
         parallax = bool(np.any(state.c != 0.0))
         hold_px = self.config.hold_epipole_px
         held_e = (parallax and may_hold_epipole and hold_px > 0.0
-                  and self._parallax_rms(state.G, state.e, state.c) < hold_px)
+                  and self.parallax_rms(state.G, state.e, state.c) < hold_px)
         if not held_e:
             outcome = solve(parallax)
         else:  # module docstring, held epipole
@@ -404,10 +404,11 @@ class GeneralRegistration:
 
     def _observed(self, state: _State) -> bool:
         """Whether the parallax `ρ* e` of `state` reaches `min_parallax_px` RMS (probe points)."""
-        return self._parallax_rms(state.G, state.e, state.c) >= self.config.min_parallax_px
+        return self.parallax_rms(state.G, state.e, state.c) >= self.config.min_parallax_px
 
-    def _parallax_rms(self, G: F64, e: F64, c: F64) -> float:
-        """RMS over the probe points of the displacement (px) due to `ρ* e`."""
+    def parallax_rms(self, G: F64, e: F64, c: F64) -> float:
+        """RMS over the probe points of the displacement (full-resolution px) due to `ρ* e` at the warp of `G`, the
+        epipole `e` (full-resolution pixels) and the ρ* coefficients `c`."""
         return _rms(self._parallax_px(G, e, c))
 
     def _epipole_seen(self, state: _State) -> bool:
@@ -415,7 +416,7 @@ class GeneralRegistration:
         significant (`FREE_EPIPOLE_WALD`) or moves the probe points by at least `FREE_EPIPOLE_FACTOR` ×
         `hold_epipole_px` RMS; that step is then `state.e`."""
         wald, candidate = self._epipole_statistic(state, held=True)
-        if wald < FREE_EPIPOLE_WALD and (self._parallax_rms(state.G, candidate, state.c)
+        if wald < FREE_EPIPOLE_WALD and (self.parallax_rms(state.G, candidate, state.c)
                                          < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px):
             return False
         state.e = candidate

@@ -86,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     import shutil
     import signal
     import threading
+    import time
     from pathlib import Path
 
     from ddvs_service.logs import fields, setup_logging
@@ -95,16 +96,14 @@ def run(args: argparse.Namespace) -> int:
     from ddvs_service.service.config import ServiceConfig
     from ddvs_service.service.fleet_config import FleetConfig, read_file
     from ddvs_service.service.process import ServeProcess
+    from ddvs_service.service.startup import start_general_steps, warm_up_configured
     from kernels.backend import BackendUnavailable, finish, init
 
     setup_logging(args.log_level)
     log = logging.getLogger("ddvs.serve")
-    try:
-        running = init(args.arch, fallback=args.cpu_fallback)
-    except BackendUnavailable as exc:
-        log.error("taichi backend unavailable", extra=fields(error=f"{exc}; --cpu-fallback serves on the CPU"))
-        return 3
-    log.info("taichi backend", extra=fields(requested=args.arch or "default", running=running))
+    if args.warmup_only and not args.warmup:
+        log.error("configuration refused", extra=fields(error="--warmup-only and --no-warmup contradict"))
+        return 2
     try:
         base, robots, process = read_file(args.config) if args.config else (ServiceConfig(), None, None)
         update: dict[str, object] = {"zenoh": session_config_from_args(args, base=base.zenoh),
@@ -121,16 +120,23 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         log.error("configuration refused", extra=fields(error=str(exc)))
         return 2
+    # --warmup-only: the general engines' step kernels compile in a helper process beside this one (forked before
+    # Taichi starts here; `service.startup`)
+    general_steps = start_general_steps(fleet, args.arch, args.cpu_fallback) if args.warmup_only else None
+    try:
+        running = init(args.arch, fallback=args.cpu_fallback)
+    except BackendUnavailable as exc:
+        log.error("taichi backend unavailable", extra=fields(error=f"{exc}; --cpu-fallback serves on the CPU"))
+        if general_steps is not None:
+            general_steps.join()  # it fails to start the backend too
+        return 3
+    log.info("taichi backend", extra=fields(requested=args.arch or "default", running=running))
     if args.warmup_only:
-        if not args.warmup:
-            log.error("configuration refused", extra=fields(error="--warmup-only and --no-warmup contradict"))
-            return 2
-        from ddvs_service.service.startup import warm_up_configured
-
-        per_robot = warm_up_configured(fleet)
+        t0 = time.monotonic()
+        per_robot = warm_up_configured(fleet, general_steps)
         for robot, robot_seconds in per_robot.items():
             log.info("kernels warmed up", extra=fields(robot=robot, seconds=round(robot_seconds, 3)))
-        log.info("warm-up done", extra=fields(seconds=round(sum(per_robot.values()), 3), robots=len(per_robot)))
+        log.info("warm-up done", extra=fields(seconds=round(time.monotonic() - t0, 3), robots=len(per_robot)))
         return 0
     if args.fresh:
         shutil.rmtree(base.state_dir, ignore_errors=True)

@@ -10,12 +10,21 @@ frame size compiles the same code; the configured or persisted intrinsics are us
 Ahead of time: Taichi's offline cache keeps what a warm-up compiled, keyed by each kernel's code and template
 arguments, for every later process. `warm_up_configured` (`ddvs serve --warmup-only`, run by `scripts/setup.sh` for
 the shipped configurations) fills it for a configuration's robots without serving, so a first start is a warm one.
+Taichi compiles on one thread of a process, so a general configuration's cold warm-up is split between two
+processes sharing the offline cache: a forked helper (`start_general_steps`) compiles the general engine's step
+kernels (`warm_up_general_steps`, about half of the compile time), while this process compiles the rest — what the
+configuration's warm-up with the planar model compiles: the pyramids, the global initialiser and the planar engine
+of the general model's first stage. Taichi's offline cache merges the entries of both processes under its file
+lock; the helper writes its entries before this process writes its own (`warm_up_configured` waits for it), so the
+two never contend for that lock.
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 from collections.abc import Sequence
+from multiprocessing.process import BaseProcess
 
 import cv2
 import numpy as np
@@ -25,7 +34,7 @@ from ddvs_service.camera import Intrinsics
 from ddvs_service.registration.general_basis import coefficient_count
 from ddvs_service.service.config import ServiceConfig
 from ddvs_service.service.fleet_config import FleetConfig
-from ddvs_service.service.pipeline import ServoPipeline
+from ddvs_service.service.pipeline import ServoPipeline, template_roi
 
 WARM_UP_INTRINSICS = Intrinsics(420.0, 420.0, 159.5, 119.5, 320, 240)  # when none is configured or persisted
 
@@ -66,8 +75,35 @@ def warm_up(config: ServiceConfig, intrinsics: Intrinsics | None, initialiser: b
         pipeline.set_reference(reference, G0=np.eye(3))
     pipeline.machine.start()
     for dx in (1.5, 2.0):  # the first frame from the global initialiser's start (or the identity), then tracked
-        pipeline.step(cv2.warpAffine(reference, np.array([[1.0, 0.0, dx], [0.0, 1.0, -dx]]),
-                                     (intrinsics.width, intrinsics.height), borderMode=cv2.BORDER_REFLECT))
+        pipeline.step(_shifted(reference, dx))
+    return time.monotonic() - t0
+
+
+def _shifted(image: np.ndarray, dx: float) -> np.ndarray:
+    """`image` moved by (dx, −dx) pixels, borders reflected: a frame that a warm-up's registration converges on."""
+    height, width = image.shape[:2]
+    return cv2.warpAffine(image, np.array([[1.0, 0.0, dx], [0.0, 1.0, -dx]]), (width, height),
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def warm_up_general_steps(config: ServiceConfig, intrinsics: Intrinsics | None) -> float:
+    """Compile the general engine's step kernels of `config` (general model): `kernels.general_step` with the ρ*
+    columns and without. One frame of the synthetic scene is tracked at full resolution from a start with parallax
+    (ρ* and `e` non-zero; twice `min_parallax_px`, at least 1 px RMS), so that its first launch is the information
+    launch of `GeneralRegistration.track` (with the ρ* columns) and the next ones are not. Returns the seconds it
+    took."""
+    from ddvs_service.registration.general import GeneralRegistration
+
+    t0 = time.monotonic()
+    intrinsics = intrinsics or _fitting(WARM_UP_INTRINSICS, config.registration.roi)
+    reference = synthetic_scene(intrinsics)
+    general = config.registration.general_config()
+    engine = GeneralRegistration.prepare(reference.astype(np.float32), template_roi(config, intrinsics), config=general)
+    e = np.linalg.solve(engine.N0, np.array([1.0, 0.0, 0.0]))  # a lateral epipole, ‖N₀ e‖ = 1
+    rho = np.zeros(engine.basis.size)
+    rho[0] = 1.0
+    rho *= max(1.0, 2.0 * general.min_parallax_px) / engine.parallax_rms(np.eye(3), e, rho)  # ∝ ρ* (G = I)
+    engine.track(_shifted(reference, 1.5).astype(np.float32), np.eye(3), e, rho, first_level=0)
     return time.monotonic() - t0
 
 
@@ -86,15 +122,67 @@ def needs_initialiser(config: ServiceConfig, last_good: NDArray[np.float64] | No
     return last_good is None or unknown_rho or not alone
 
 
-def warm_up_configured(fleet: FleetConfig) -> dict[str, float]:
-    """Warm up the kernels of each configured robot of `fleet` (robots with the same registration settings share
-    their kernels: 0 s for all but the first); robot name → seconds. Reads and writes no state directory."""
-    seconds: dict[str, float] = {}
-    warmed: set[str] = set()
+def _distinct(fleet: FleetConfig) -> dict[str, tuple[ServiceConfig, Intrinsics | None]]:
+    """The configured robots of `fleet` with distinct registration settings (the first robot of each), robot name →
+    its configuration and configured intrinsics (robots with the same registration settings share their kernels)."""
+    distinct: dict[str, tuple[ServiceConfig, Intrinsics | None]] = {}
+    keys: set[str] = set()
     for name, settings in fleet.configured.items():
         config = fleet.robot_config(name, settings)
         key = config.registration.model_dump_json()
-        intrinsics = config.intrinsics.to_intrinsics() if config.intrinsics is not None else None
-        seconds[name] = 0.0 if key in warmed else warm_up(config, intrinsics)
-        warmed.add(key)
+        if key not in keys:
+            keys.add(key)
+            distinct[name] = (config, config.intrinsics.to_intrinsics() if config.intrinsics is not None else None)
+    return distinct
+
+
+def start_general_steps(fleet: FleetConfig, arch: str | None, fallback: bool) -> BaseProcess | None:
+    """Fork the helper process that compiles the general engine's step kernels of `fleet`'s general configurations
+    (`warm_up_general_steps`) into the offline cache on Taichi backend `arch` (`kernels.backend.init`'s `arch` and
+    `fallback`), or None when no robot uses the general model. Call it before Taichi starts in this process (a fork
+    would copy a started program without its threads) and pass it to `warm_up_configured`."""
+    general = [robot for robot in _distinct(fleet).values() if robot[0].registration.model == "general"]
+    if not general:
+        return None
+    helper = multiprocessing.get_context("fork").Process(target=_general_steps, args=(general, arch, fallback),
+                                                        name="ddvs-warm-up-general-steps")
+    helper.start()
+    return helper
+
+
+def _general_steps(robots: list[tuple[ServiceConfig, Intrinsics | None]], arch: str | None, fallback: bool) -> None:
+    """The helper process of `start_general_steps`: exit status 3 when the backend cannot start (as `ddvs serve`;
+    the parent, which fails to start it too, says why)."""
+    from kernels.backend import BackendUnavailable, finish, init
+
+    try:
+        init(arch, fallback=fallback)
+    except BackendUnavailable:
+        raise SystemExit(3) from None
+    for config, intrinsics in robots:
+        warm_up_general_steps(config, intrinsics)
+    finish()  # writes the offline cache: a forked process exits without the interpreter's exit handlers
+
+
+def warm_up_configured(fleet: FleetConfig, general_steps: BaseProcess | None = None) -> dict[str, float]:
+    """Warm up the kernels of each configured robot of `fleet` (robots with the same registration settings share
+    their kernels: 0 s for all but the first); robot name → seconds this process spent on them. `general_steps`:
+    the helper of `start_general_steps`, which compiles the general engines' step kernels; this process then warms
+    each general configuration as the planar model (the rest of its kernels, module docstring) and waits for the
+    helper (`RuntimeError` when it failed). Reads and writes no state directory."""
+    distinct = _distinct(fleet)
+    seconds: dict[str, float] = {}
+    for name in fleet.configured:
+        if name not in distinct:
+            seconds[name] = 0.0
+            continue
+        config, intrinsics = distinct[name]
+        if general_steps is not None and config.registration.model == "general":
+            config = config.model_copy(update={"registration": config.registration.model_copy(
+                update={"model": "planar"})})
+        seconds[name] = warm_up(config, intrinsics)
+    if general_steps is not None:
+        general_steps.join()
+        if general_steps.exitcode != 0:
+            raise RuntimeError(f"the general engines' warm-up process failed (exit status {general_steps.exitcode})")
     return seconds
