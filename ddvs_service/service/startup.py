@@ -22,6 +22,7 @@ two never contend for that lock.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import time
 from collections.abc import Sequence
 from multiprocessing.process import BaseProcess
@@ -139,10 +140,11 @@ def _distinct(fleet: FleetConfig) -> dict[str, tuple[ServiceConfig, Intrinsics |
 def start_general_steps(fleet: FleetConfig, arch: str | None, fallback: bool) -> BaseProcess | None:
     """Fork the helper process that compiles the general engine's step kernels of `fleet`'s general configurations
     (`warm_up_general_steps`) into the offline cache on Taichi backend `arch` (`kernels.backend.init`'s `arch` and
-    `fallback`), or None when no robot uses the general model. Call it before Taichi starts in this process (a fork
-    would copy a started program without its threads) and pass it to `warm_up_configured`."""
+    `fallback`), or None when no robot uses the general model or this process may run on one core only (the helper
+    would then only add its own start-up). Call it before Taichi starts in this process (a fork would copy a started
+    program without its threads) and pass it to `warm_up_configured`."""
     general = [robot for robot in _distinct(fleet).values() if robot[0].registration.model == "general"]
-    if not general:
+    if not general or len(os.sched_getaffinity(0)) < 2:
         return None
     helper = multiprocessing.get_context("fork").Process(target=_general_steps, args=(general, arch, fallback),
                                                         name="ddvs-warm-up-general-steps")
