@@ -16,7 +16,7 @@ kernels (`warm_up_general_steps`, about half of the compile time), while this pr
 configuration's warm-up with the planar model compiles: the pyramids, the global initialiser and the planar engine
 of the general model's first stage. Taichi's offline cache merges the entries of both processes under its file
 lock; the helper writes its entries before this process writes its own (`warm_up_configured` waits for it), so the
-two never contend for that lock.
+two writes never contend for that lock (Taichi drops a write it cannot lock within 0.2 s).
 """
 
 from __future__ import annotations
