@@ -262,7 +262,8 @@ class GeneralRegistration:
             start = replace(state)
             state.e = np.zeros(3)
             held = solve(False)
-            held_e = not held.failed and not self._epipole_seen(state)
+            wald, step = self._epipole_statistic(state, held=True)
+            held_e = not held.failed and not self._epipole_seen(state, wald, step)
             if held_e:
                 outcome = held
             else:  # the frame sees an epipole (`state.e` its step), or the held fit failed: from the start again
@@ -277,7 +278,7 @@ class GeneralRegistration:
         info = state.information if observed and state.information is not None else np.zeros((self.basis.size,) * 2)
         result = self._result(state, outcome.iterations, outcome.converged, outcome.reason, info)
         if parallax:
-            result.epipole_wald = self._epipole_statistic(state, held_e)[0]
+            result.epipole_wald = wald if held_e else self._epipole_statistic(state, held=False)[0]
         return result
 
     # --------------------------------------------------------------------------------------------- internals
@@ -411,15 +412,15 @@ class GeneralRegistration:
         epipole `e` (full-resolution pixels) and the ρ* coefficients `c`."""
         return _rms(self._parallax_px(G, e, c))
 
-    def _epipole_seen(self, state: _State) -> bool:
-        """Whether `state`, solved with `e` held at 0, sees an epipole: its step on `e` (`_epipole_statistic`) is
-        significant (`FREE_EPIPOLE_WALD`) or moves the probe points by at least `FREE_EPIPOLE_FACTOR` ×
-        `hold_epipole_px` RMS; that step is then `state.e`."""
-        wald, candidate = self._epipole_statistic(state, held=True)
-        if wald < FREE_EPIPOLE_WALD and (self.parallax_rms(state.G, candidate, state.c)
-                                         < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px):
+    def _epipole_seen(self, state: _State, wald: float, step: F64) -> bool:
+        """Whether `state`, solved with `e` held at 0, sees an epipole: its step on `e` (`_epipole_statistic`:
+        `wald`, `step`) is significant (`FREE_EPIPOLE_WALD`) or moves the probe points by at least
+        `FREE_EPIPOLE_FACTOR` × `hold_epipole_px` RMS; that step is then `state.e`. Not without a statistic (nan:
+        singular equations)."""
+        if math.isnan(wald) or (wald < FREE_EPIPOLE_WALD and self.parallax_rms(state.G, step, state.c)
+                                < FREE_EPIPOLE_FACTOR * self.config.hold_epipole_px):
             return False
-        state.e = candidate
+        state.e = step
         return True
 
     def _epipole_statistic(self, state: _State, held: bool) -> tuple[float, F64]:
