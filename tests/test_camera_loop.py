@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import free_port
-from test_service_node import Operator, Service
+from test_service_node import Operator, Service, answered_frames
 
 from ddvs_service.camera import Intrinsics
 from ddvs_service.lie import pose, pose_inv, so3_exp, so3_log
@@ -98,7 +98,7 @@ class Plant(Operator):
     def __init__(self, port: int, camera: Camera) -> None:
         super().__init__(port)
         self.frames.undeclare()
-        self.frames = self.session.declare_publisher(self.keys.key(camera.row))
+        self.frames = answered_frames(self.session, self.keys.key(camera.row))
         self.info = self.session.declare_publisher(self.keys.key("camera_info"))
         self.reference = LatestSubscriber(self.session, self.keys.key("servo_reference"))
         self.camera = camera

@@ -22,7 +22,7 @@ import zenoh
 from conftest import free_port
 from test_security import Inbox
 from test_security_audit import audit_lines, ddvs_router, open_roles
-from test_service_node import Service, scene, service_config, shifted
+from test_service_node import Service, answered_frames, scene, service_config, shifted
 
 from ddvs_service.protocol import (
     Command,
@@ -101,7 +101,7 @@ def test_a_secured_fleet_process_serves_its_robots_and_answers_only_the_operator
 
         # robot sf_b servos: the plant's frames are answered with twists, the operator commands it
         twists, statuses = Inbox(operator, robot_b.servo_twist), Inbox(operator, robot_b.servo_status)
-        frames = plant.declare_publisher(robot_b.camera_image)
+        frames = answered_frames(plant, robot_b.camera_image)
         stack.callback(frames.undeclare)
 
         def send(image: np.ndarray, n: int) -> dict[str, Any]:

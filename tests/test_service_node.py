@@ -68,6 +68,13 @@ def service_config(port: int, state_dir: Path) -> ServiceConfig:
     })
 
 
+def answered_frames(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """A frame publisher whose every frame reaches the service: BLOCK congestion control. The camera key's own QoS
+    (DROP, `TOPICS`) lets Zenoh drop a frame whose fragments find the transmit queue full for 1 ms, which a loaded
+    machine sees with a 230 kB bgr8 frame; a test that waits for each frame's answer must not lose it."""
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
 class Operator:
     """The test's side: publishes frames, sends commands, collects twists and statuses."""
 
@@ -82,7 +89,7 @@ class Operator:
             self.session.declare_subscriber(self.keys.key("servo_twist"), self._on_twist),
             self.session.declare_subscriber(self.keys.key("servo_status"), self._on_status),
         ]
-        self.frames = self.session.declare_publisher(self.keys.key("camera_image"))
+        self.frames = answered_frames(self.session, self.keys.key("camera_image"))
         self._stamp = 0
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
@@ -166,10 +173,14 @@ def running_service(config: ServiceConfig, tmp_path: Path, port: int,
     try:
         service.wait_ready(op)
         yield service, op
+    except BaseException:
+        _, log = service.stop()
+        print(f"the service's log, the test having failed:\n{log[-8000:]}")  # pytest shows it beside the failure
+        raise
     finally:
-        code, _ = service.stop()
         op.close()
-        assert code == 0
+    code, log = service.stop()
+    assert code == 0, f"the service exited with {code}:\n{log[-8000:]}"
 
 
 @pytest.fixture
