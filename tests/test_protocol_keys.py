@@ -118,6 +118,21 @@ def test_attachment_layout_is_zenohs_serialization_of_the_rmw_tuple() -> None:
     assert (first.sequence_number, second.sequence_number) == (1, 2) and first.gid == second.gid == identity.gid
 
 
+def test_the_services_images_never_queue_ahead_of_its_status() -> None:
+    """Zenoh fragments a sample larger than a batch (`transport/link/tx/batch_size`) over its priority's few batches
+    (`queue/size`); a DROP sample pushed at that priority while they are still queued waits `wait_before_drop` (1 ms)
+    for a batch, then is dropped. A reference image (320×240 mono8 is already fragmented) at the status's priority
+    thus cost a loaded machine the READY status of the frame that set it. The service's images travel below it."""
+    config = zenoh.Config()
+    queue, batch = (json.loads(config.get_json(f"transport/link/tx/{key}")) for key in ("queue", "batch_size"))
+    status = TOPICS["servo_status"]
+    assert status.congestion == "DROP" and queue["congestion_control"]["drop"]["wait_before_drop"] == 1000
+    assert batch < 320 * 240
+    images = [name for name, spec in TOPICS.items() if spec.publisher.startswith("serve") and "Image" in spec.payload]
+    assert images == ["servo_reference", "servo_residual"]
+    assert all(TOPICS[name].priority != status.priority for name in images)
+
+
 def test_docs_key_table_matches_the_code() -> None:
     text = DOC.read_text(encoding="utf-8")
     for spec in TOPICS.values():

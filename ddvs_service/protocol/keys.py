@@ -84,7 +84,7 @@ TOPICS: dict[str, TopicSpec] = {
     ),
     "servo_reference": TopicSpec(
         "servo/reference", "sensor_msgs/msg/Image (CDR)", "sensor_msgs/msg/Image",
-        "serve (when a reference is set)", "monitor, record", "DATA", "BLOCK", False, "latest only",
+        "serve (when a reference is set)", "monitor, record", "DATA_LOW", "BLOCK", False, "latest only",
         "ddvs/reference", LATEST_QOS,
     ),
     "servo_residual": TopicSpec(
