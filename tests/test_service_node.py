@@ -70,8 +70,8 @@ def service_config(port: int, state_dir: Path) -> ServiceConfig:
 
 def answered_frames(session: zenoh.Session, key: str) -> zenoh.Publisher:
     """A frame publisher whose every frame reaches the service: BLOCK congestion control. The camera key's own QoS
-    (DROP, `TOPICS`) lets Zenoh drop a frame whose fragments find the transmit queue full for 1 ms, which a loaded
-    machine sees with a 230 kB bgr8 frame; a test that waits for each frame's answer must not lose it."""
+    (DROP, `TOPICS`) lets Zenoh drop a frame it cannot queue in time; a test that waits for each frame's answer must
+    not lose one."""
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
 
 
